@@ -1,0 +1,35 @@
+"""jaxfish: a JAX functional reprojection engine for surround-view fisheye cameras.
+
+The public API (see the docs for every convention)::
+
+    import jaxfish as jf
+    calib = jf.load_calibration("FV.json")
+    uv, valid = calib.camera.project(points_cam)
+    rays, valid = calib.camera.unproject(uv)
+    p_vehicle = calib.camera_to_vehicle.apply(points_cam)
+"""
+
+from ._errors import CalibrationError as CalibrationError
+from ._errors import ImageError as ImageError
+from ._errors import JaxfishError as JaxfishError
+from .calibration import CAMERA_NAMES as CAMERA_NAMES
+from .calibration import (
+    SYNWOODSCAPE_CORRECTED_TRANSLATIONS_CARLA as SYNWOODSCAPE_CORRECTED_TRANSLATIONS_CARLA,
+)
+from .calibration import Calibration as Calibration
+from .calibration import crop_fisheye as crop_fisheye
+from .calibration import default_rig as default_rig
+from .calibration import resize_fisheye as resize_fisheye
+from .cameras import AbstractCamera as AbstractCamera
+from .cameras import Cylindrical as Cylindrical
+from .cameras import Equirectangular as Equirectangular
+from .cameras import Orthographic as Orthographic
+from .cameras import Pinhole as Pinhole
+from .cameras import WoodScapeFisheye as WoodScapeFisheye
+from .io import load_calibration as load_calibration
+from .io import load_rig as load_rig
+from .io import save_calibration as save_calibration
+from .io import save_rig as save_rig
+from .transforms import Pose as Pose
+
+__version__ = "0.1.0"

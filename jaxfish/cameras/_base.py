@@ -1,0 +1,98 @@
+"""The camera contract shared by every jaxfish camera model."""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from .._numerics import float_dtype, resolve_dtype
+
+
+class AbstractCamera(eqx.Module):
+    """A camera model: an immutable pytree mapping camera-frame points to pixels and back.
+
+    Conventions (stated once, in `docs/conventions.md`):
+
+    - camera frame: OpenCV — x right, y down, z forward (optical axis), metres;
+    - pixels: ``(u, v)`` = (column, row); integer coordinates are pixel **centres**, ``(0, 0)`` is
+      the centre of the top-left pixel, the image spans ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``.
+
+    `project` and `unproject` accept any leading batch shape and return ``(value, valid)``; invalid
+    entries hold finite placeholder values (never NaN) and must be masked by the caller. Both are
+    pure and safe under `jax.jit`, `jax.vmap` and `jax.grad`. A *batch of cameras* is a camera whose
+    array fields have leading axes; map over it with `jax.vmap` (or `eqx.filter_vmap`).
+
+    Computations run in the floating dtype of the coordinates passed in (the camera's parameters
+    are cast to it), so a float64 camera projects float32 points in float32.
+    """
+
+    width: eqx.AbstractVar[int]
+    height: eqx.AbstractVar[int]
+
+    @abc.abstractmethod
+    def project(
+        self, points: Float[ArrayLike, "*batch 3"]
+    ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
+        """Project camera-frame points (metres) to pixels.
+
+        `valid` is False where the model has no image of the point (behind a pinhole, beyond a
+        fisheye's ``theta_max``, the camera centre itself). It does **not** test the image bounds:
+        combine with `contains` for that.
+        """
+
+    @abc.abstractmethod
+    def unproject(
+        self, uv: Float[ArrayLike, "*batch 2"]
+    ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+        """Unit ray directions (camera frame) of pixels; `valid` is False where a pixel has no ray."""
+
+    def ray_origins(self, uv: Float[ArrayLike, "*batch 2"]) -> Float[Array, "*batch 3"]:
+        """Camera-frame origins of the pixel rays (zeros for central cameras)."""
+        uv = jnp.asarray(uv)
+        dtype = float_dtype(uv)
+        return jnp.zeros(uv.shape[:-1] + (3,), dtype)
+
+    @property
+    def is_central(self) -> bool:
+        """True when every ray starts at the camera centre (all models but `Orthographic`)."""
+        return True
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """``(width, height)`` in pixels."""
+        return (self.width, self.height)
+
+    def contains(self, uv: Float[ArrayLike, "*batch 2"]) -> Bool[Array, "*batch"]:
+        """True for pixel coordinates inside the image ``[-0.5, W-0.5] x [-0.5, H-0.5]``."""
+        uv = jnp.asarray(uv)
+        u, v = uv[..., 0], uv[..., 1]
+        return (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
+
+    def pixel_grid(self, dtype=None) -> Float[Array, "H W 2"]:
+        """Pixel-centre coordinates ``(u, v)`` of the whole image, shape ``(H, W, 2)``."""
+        dtype = resolve_dtype(dtype, )
+        u = jnp.arange(self.width, dtype=dtype)
+        v = jnp.arange(self.height, dtype=dtype)
+        uu, vv = jnp.meshgrid(u, v, indexing="xy")
+        return jnp.stack([uu, vv], axis=-1)
+
+    def astype(self, dtype) -> AbstractCamera:
+        """A copy whose floating parameters have the given dtype."""
+        dtype = resolve_dtype(dtype)
+
+        def cast(x):
+            if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating):
+                return x.astype(dtype)
+            return x
+
+        return jax.tree_util.tree_map(cast, self)
+
+
+def _split_last(x: Array, n: int) -> tuple[Array, ...]:
+    if x.shape[-1:] != (n,):
+        raise ValueError(f"expected a trailing axis of size {n}, got shape {x.shape}")
+    return tuple(x[..., i] for i in range(n))

@@ -1,0 +1,91 @@
+"""The pinhole (perspective) camera, with CARLA's field-of-view convention."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from .._numerics import float_dtype, resolve_dtype
+from ._base import AbstractCamera
+
+
+class Pinhole(AbstractCamera):
+    """An ideal pinhole camera: ``u = fx X/Z + cx``, ``v = fy Y/Z + cy`` (OpenCV camera frame).
+
+    Pixel-centre convention as every jaxfish camera: ``(cx, cy)`` is the pixel coordinate of the
+    optical axis, with integer coordinates at pixel centres. Use `Pinhole.from_fov` for a CARLA
+    ``sensor.camera.*``: CARLA's optical axis is the image centre ``((W-1)/2, (H-1)/2)`` in these
+    coordinates (CARLA tutorials write ``W/2`` with a pixel-corner origin: the same point).
+    Points with ``Z <= 0`` are invalid.
+    """
+
+    fx: Float[Array, ""]
+    fy: Float[Array, ""]
+    cx: Float[Array, ""]
+    cy: Float[Array, ""]
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+
+    def __init__(self, fx, fy, cx, cy, *, width: int, height: int, dtype=None):
+        dtype = resolve_dtype(dtype, fx)
+        self.fx = jnp.asarray(fx, dtype=dtype)
+        self.fy = jnp.asarray(fy, dtype=dtype)
+        self.cx = jnp.asarray(cx, dtype=dtype)
+        self.cy = jnp.asarray(cy, dtype=dtype)
+        width, height = int(width), int(height)
+        if width <= 0 or height <= 0:
+            raise ValueError(f"Pinhole: image size must be positive, got {width}x{height}")
+        self.width = width
+        self.height = height
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, fov_deg: float = 90.0, *, dtype=None) -> Pinhole:
+        """CARLA's camera: ``f = W / (2 tan(fov/2))`` (fov horizontal, degrees), square pixels,
+        optical axis at the image centre ``((W-1)/2, (H-1)/2)``."""
+        if not 0.0 < float(fov_deg) < 180.0:
+            raise ValueError(f"Pinhole.from_fov: fov_deg must be in (0, 180), got {fov_deg}")
+        f = width / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+        return cls(f, f, (width - 1) / 2.0, (height - 1) / 2.0, width=width, height=height, dtype=dtype)
+
+    @property
+    def intrinsic_matrix(self) -> Float[Array, "3 3"]:
+        """The 3x3 matrix K (pixel-centre convention)."""
+        z = jnp.zeros_like(self.fx)
+        o = jnp.ones_like(self.fx)
+        return jnp.stack(
+            [jnp.stack([self.fx, z, self.cx]), jnp.stack([z, self.fy, self.cy]), jnp.stack([z, z, o])]
+        )
+
+    def project(
+        self, points: Float[ArrayLike, "*batch 3"]
+    ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
+        """Pixels of camera-frame points; valid where ``Z > 0``."""
+        p = jnp.asarray(points)
+        if p.shape[-1:] != (3,):
+            raise ValueError(f"Pinhole.project: points must have shape (..., 3), got {p.shape}")
+        dtype = float_dtype(p)
+        p = p.astype(dtype)
+        z = p[..., 2]
+        valid = z > 0
+        inv_z = 1.0 / jnp.where(valid, z, 1.0)
+        u = self.fx.astype(dtype) * p[..., 0] * inv_z + self.cx.astype(dtype)
+        v = self.fy.astype(dtype) * p[..., 1] * inv_z + self.cy.astype(dtype)
+        return jnp.stack([u, v], axis=-1), valid
+
+    def unproject(
+        self, uv: Float[ArrayLike, "*batch 2"]
+    ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+        """Unit rays of pixels (always valid)."""
+        uv = jnp.asarray(uv)
+        if uv.shape[-1:] != (2,):
+            raise ValueError(f"Pinhole.unproject: uv must have shape (..., 2), got {uv.shape}")
+        dtype = float_dtype(uv)
+        uv = uv.astype(dtype)
+        x = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
+        y = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)
+        d = jnp.stack([x, y, jnp.ones_like(x)], axis=-1)
+        ray = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+        return ray, jnp.ones(uv.shape[:-1], dtype=bool)

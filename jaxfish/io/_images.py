@@ -1,0 +1,94 @@
+"""Image files through OpenImageIO (EXR float32/half, PNG 8/16 bit), dtype-preserving.
+
+Library traps handled here (CONVENTIONS §8): 2-D arrays are written as (H, W, 1); pixels are read
+with the file's own format (``oiio.UNKNOWN``) so uint8/uint16/half/float survive a round trip; a
+missing or corrupt file raises `ImageError` naming it; writes are atomic.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+from .._errors import ImageError
+from ._atomic import atomic_path
+
+_WRITABLE = {".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg"}
+_DTYPES = {
+    np.dtype(np.uint8): oiio.UINT8,
+    np.dtype(np.uint16): oiio.UINT16,
+    np.dtype(np.float16): oiio.HALF,
+    np.dtype(np.float32): oiio.FLOAT,
+}
+
+
+def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """Read an image as ``(H, W, C)`` in the file's own dtype (uint8, uint16, float16 or float32).
+
+    ``expect_shape`` (``(H, W)`` or ``(H, W, C)``) raises `ImageError` on a size mismatch.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: image file not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ImageError(f"{path}: cannot open image ({oiio.geterror() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.UNKNOWN)
+        if pixels is None:
+            raise ImageError(f"{path}: corrupt or truncated image ({inp.geterror() or oiio.geterror()})")
+    finally:
+        inp.close()
+    err = oiio.geterror()
+    pixels = np.asarray(pixels)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    if pixels.shape[:2] != (spec.height, spec.width):
+        raise ImageError(f"{path}: corrupt image (read {pixels.shape}, header says {spec.height}x{spec.width}) {err}")
+    if expect_shape is not None:
+        got = pixels.shape[: len(expect_shape)]
+        if tuple(got) != tuple(expect_shape):
+            raise ImageError(f"{path}: expected an image of shape {tuple(expect_shape)}, got {pixels.shape}")
+    return pixels
+
+
+def write_image(path: str | os.PathLike, pixels: np.ndarray) -> Path:
+    """Write ``(H, W)`` or ``(H, W, C)`` pixels, keeping the dtype (uint8/uint16 PNG, float16/float32
+    EXR). Atomic: on any error nothing is left at ``path``."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in _WRITABLE:
+        raise ImageError(f"{path}: unsupported image extension {ext!r} (use .png or .exr)")
+    a = np.asarray(pixels)
+    if a.dtype == np.float64:
+        a = a.astype(np.float32)
+    if a.dtype == np.bool_:
+        a = a.astype(np.uint8) * 255
+    if a.dtype not in _DTYPES:
+        raise ImageError(f"{path}: unsupported pixel dtype {a.dtype}")
+    if ext == ".png" and a.dtype not in (np.uint8, np.uint16):
+        raise ImageError(f"{path}: PNG stores uint8/uint16 pixels, got {a.dtype} (use .exr for floats)")
+    if a.ndim == 2:
+        a = a[..., None]  # OpenImageIO scrambles 2-D arrays (CONVENTIONS §8)
+    if a.ndim != 3 or a.shape[0] == 0 or a.shape[1] == 0:
+        raise ImageError(f"{path}: expected (H, W) or (H, W, C) pixels, got shape {np.asarray(pixels).shape}")
+    a = np.ascontiguousarray(a)
+    h, w, c = a.shape
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise ImageError(f"{path}: cannot create writer ({oiio.geterror()})")
+        spec = oiio.ImageSpec(w, h, c, _DTYPES[a.dtype])
+        if ext == ".exr":
+            spec.attribute("compression", "zip")
+        if not out.open(str(tmp), spec):
+            raise ImageError(f"{path}: cannot open for writing ({out.geterror()})")
+        ok = out.write_image(a)
+        out.close()
+        if not ok:
+            raise ImageError(f"{path}: write failed ({out.geterror()})")
+    return path
