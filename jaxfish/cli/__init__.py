@@ -2,6 +2,6 @@
 
 from __future__ import annotations
 
+from . import _demo as _demo  # noqa: F401  (registers `jaxfish demo`)
 from ._app import app as app
 from ._app import main as main
-from . import _demo as _demo  # noqa: F401  (registers `jaxfish demo`)

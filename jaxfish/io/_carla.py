@@ -1,0 +1,105 @@
+"""CARLA sensor encodings (0.9.10 - 0.9.16), both directions, as plain NumPy.
+
+- Raw camera images are **BGRA** uint8 ``(H, W, 4)``.
+- Depth: ``metres = 1000 (R + 256 G + 256² B) / (256³ - 1)``, planar z-depth along the camera
+  axis; far/sky saturates at 1000 m.
+- Semantic segmentation: the tag in the **red** channel (0.9.10-0.9.13 tag table by default).
+- Instance segmentation (0.9.14+): R = tag, object id = G + 256 B.
+- DVS events: structured array ``x <u2, y <u2, t <i8 (nanoseconds), pol ?`` (13 bytes each).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._errors import ImageError
+
+#: CARLA's DVS event dtype (``np.frombuffer(raw, dtype=DVS_EVENT_DTYPE)``); ``t`` is in nanoseconds.
+DVS_EVENT_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("pol", "?")])
+#: Depth that CARLA's 24-bit encoding saturates at (metres): far and sky.
+CARLA_MAX_DEPTH_M = 1000.0
+_DEPTH_SCALE = 256**3 - 1
+
+
+def _check_bgra(bgra: np.ndarray, what: str) -> np.ndarray:
+    a = np.asarray(bgra)
+    if a.dtype != np.uint8 or a.ndim != 3 or a.shape[-1] not in (3, 4):
+        raise ImageError(f"{what}: expected a BGRA uint8 image (H, W, 4), got {a.dtype} {a.shape}")
+    return a
+
+
+def bgra_to_rgb(bgra: np.ndarray) -> np.ndarray:
+    """CARLA BGRA (or BGR) uint8 -> RGB uint8 ``(H, W, 3)``."""
+    a = _check_bgra(bgra, "bgra_to_rgb")
+    return np.ascontiguousarray(a[..., 2::-1])
+
+
+def rgb_to_bgra(rgb: np.ndarray) -> np.ndarray:
+    """RGB uint8 ``(H, W, 3)`` -> CARLA BGRA uint8 with alpha 255."""
+    a = np.asarray(rgb)
+    if a.dtype != np.uint8 or a.ndim != 3 or a.shape[-1] != 3:
+        raise ImageError(f"rgb_to_bgra: expected an RGB uint8 image (H, W, 3), got {a.dtype} {a.shape}")
+    alpha = np.full(a.shape[:2] + (1,), 255, np.uint8)
+    return np.concatenate([a[..., ::-1], alpha], axis=-1)
+
+
+def decode_depth(bgra: np.ndarray) -> np.ndarray:
+    """CARLA 24-bit encoded depth (BGRA uint8) -> planar z-depth in metres, float32."""
+    a = _check_bgra(bgra, "decode_depth").astype(np.float64)
+    b, g, r = a[..., 0], a[..., 1], a[..., 2]
+    return (CARLA_MAX_DEPTH_M * (r + 256.0 * g + 65536.0 * b) / _DEPTH_SCALE).astype(np.float32)
+
+
+def encode_depth(depth_m: np.ndarray) -> np.ndarray:
+    """Planar z-depth in metres -> CARLA 24-bit BGRA uint8 (clipped to [0, 1000] m, rounded to
+    the nearest of the 2²⁴ levels, ~6e-5 m apart)."""
+    d = np.clip(np.asarray(depth_m, dtype=np.float64), 0.0, CARLA_MAX_DEPTH_M)
+    n = np.rint(d / CARLA_MAX_DEPTH_M * _DEPTH_SCALE).astype(np.int64)
+    r, g, b = n % 256, (n // 256) % 256, n // 65536
+    alpha = np.full_like(n, 255)
+    return np.stack([b, g, r, alpha], axis=-1).astype(np.uint8)
+
+
+def decode_semantic(bgra: np.ndarray) -> np.ndarray:
+    """CARLA semantic segmentation image -> tag map uint8 ``(H, W)`` (the red channel)."""
+    return np.ascontiguousarray(_check_bgra(bgra, "decode_semantic")[..., 2])
+
+
+def encode_semantic(tags: np.ndarray) -> np.ndarray:
+    """Tag map ``(H, W)`` -> CARLA semantic BGRA uint8 (tag in red, alpha 255)."""
+    t = np.asarray(tags)
+    if t.ndim != 2 or t.min(initial=0) < 0 or t.max(initial=0) > 255:
+        raise ImageError(f"encode_semantic: expected (H, W) tags in 0..255, got shape {t.shape}")
+    z = np.zeros(t.shape, np.uint8)
+    return np.stack([z, z, t.astype(np.uint8), np.full(t.shape, 255, np.uint8)], axis=-1)
+
+
+def decode_instance(bgra: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CARLA (0.9.14+) instance image -> ``(tag uint8 (H, W), object id uint16 (H, W) = G + 256 B)``."""
+    a = _check_bgra(bgra, "decode_instance")
+    ids = a[..., 1].astype(np.uint16) + (a[..., 0].astype(np.uint16) << 8)
+    return np.ascontiguousarray(a[..., 2]), ids
+
+
+def encode_instance(tags: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """``(tag (H, W), object id (H, W) < 65536)`` -> CARLA instance BGRA uint8."""
+    t = np.asarray(tags)
+    i = np.asarray(ids).astype(np.int64)
+    if t.shape != i.shape or t.ndim != 2:
+        raise ImageError(f"encode_instance: tags and ids must both be (H, W), got {t.shape} and {i.shape}")
+    if i.min(initial=0) < 0 or i.max(initial=0) > 65535:
+        raise ImageError("encode_instance: ids must be in 0..65535")
+    return np.stack(
+        [(i >> 8).astype(np.uint8), (i & 255).astype(np.uint8), t.astype(np.uint8), np.full(t.shape, 255, np.uint8)],
+        axis=-1,
+    )
+
+
+def decode_dvs(raw: bytes | np.ndarray) -> np.ndarray:
+    """CARLA DVS raw buffer -> structured event array (`DVS_EVENT_DTYPE`, t in ns)."""
+    if isinstance(raw, np.ndarray) and raw.dtype == DVS_EVENT_DTYPE:
+        return raw
+    buf = bytes(raw) if not isinstance(raw, bytes) else raw
+    if len(buf) % DVS_EVENT_DTYPE.itemsize:
+        raise ImageError(f"decode_dvs: buffer of {len(buf)} bytes is not a whole number of 13-byte events")
+    return np.frombuffer(buf, dtype=DVS_EVENT_DTYPE).copy()

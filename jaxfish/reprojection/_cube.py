@@ -1,0 +1,155 @@
+"""The cube rig: the perspective faces a CARLA capture renders for one fisheye camera."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .._numerics import float_dtype, resolve_dtype
+from ..cameras import AbstractCamera, Pinhole, WoodScapeFisheye
+from ..transforms import UNREAL_CAMERA_TO_OPENCV, Pose, carla_rotation_matrix
+
+#: Face name -> CARLA rotation ``(pitch, yaw, roll)`` in degrees of the face camera relative to the
+#: fisheye camera's own CARLA transform (Unreal frame). ``back`` is optional.
+CUBE_FACE_ROTATIONS: dict[str, tuple[float, float, float]] = {
+    "front": (0.0, 0.0, 0.0),
+    "left": (0.0, -90.0, 0.0),
+    "right": (0.0, 90.0, 0.0),
+    "top": (90.0, 0.0, 0.0),
+    "bottom": (-90.0, 0.0, 0.0),
+    "back": (0.0, 180.0, 0.0),
+}
+#: The five faces SynWoodScape renders (no back face: a 190-degree lens never needs it).
+FIVE_FACES: tuple[str, ...] = ("front", "left", "right", "top", "bottom")
+SIX_FACES: tuple[str, ...] = FIVE_FACES + ("back",)
+
+
+def face_to_camera_rotation(face: str, *, dtype=None) -> np.ndarray:
+    """Rotation taking a face camera's OpenCV frame to the fisheye camera's OpenCV frame."""
+    if face not in CUBE_FACE_ROTATIONS:
+        raise ValueError(f"unknown cube face {face!r}; expected one of {tuple(CUBE_FACE_ROTATIONS)}")
+    pitch, yaw, roll = CUBE_FACE_ROTATIONS[face]
+    r_unreal = np.asarray(carla_rotation_matrix(pitch, yaw, roll, dtype=jnp.float64 if dtype is None else dtype))
+    m = UNREAL_CAMERA_TO_OPENCV
+    r = m @ r_unreal.astype(np.float64) @ m.T
+    return np.round(r, 12)  # exact 0/±1 entries for the axis-aligned faces
+
+
+class CubeRig(AbstractCamera):
+    """The 90-degree perspective faces of one fisheye camera, as CARLA captures them.
+
+    Every face is a CARLA pinhole (fov 90, ``S x S``, ``f = S / 2``, optical axis at the
+    pixel-centre coordinate ``((S-1)/2, (S-1)/2)``) attached to the fisheye camera's CARLA
+    transform with the relative rotation `CUBE_FACE_ROTATIONS`. The rig's own frame is the fisheye
+    camera's OpenCV frame. As a camera it maps a direction to the face whose optical axis is closest
+    (the dominant-axis rule) and pixel coordinates *within that face*; `project_faces` also returns
+    the face index. A direction that no face sees (behind a five-face rig) is invalid.
+    """
+
+    face: Pinhole
+    face_to_camera: Pose  # batched over faces: rotation (F, 3, 3), translation (F, 3) = 0
+    faces: tuple[str, ...] = eqx.field(static=True)
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+
+    def __init__(self, face_size: int, *, faces: tuple[str, ...] = FIVE_FACES, dtype=None):
+        dtype = resolve_dtype(dtype)
+        face_size = int(face_size)
+        if face_size <= 0:
+            raise ValueError(f"CubeRig: face_size must be positive, got {face_size}")
+        faces = tuple(faces)
+        if len(set(faces)) != len(faces) or not faces:
+            raise ValueError(f"CubeRig: faces must be distinct and non-empty, got {faces}")
+        rots = np.stack([face_to_camera_rotation(f) for f in faces])
+        self.face = Pinhole.from_fov(face_size, face_size, 90.0, dtype=dtype)
+        self.face_to_camera = Pose(rots, np.zeros((len(faces), 3)), dtype=dtype)
+        self.faces = faces
+        self.width = face_size
+        self.height = face_size
+
+    @property
+    def face_size(self) -> int:
+        """Side ``S`` of every square face, in pixels."""
+        return self.width
+
+    def face_index(self, name: str) -> int:
+        """Index of a face name in `faces`."""
+        return self.faces.index(name)
+
+    def face_pose(self, name: str) -> Pose:
+        """face OpenCV frame -> fisheye camera OpenCV frame."""
+        i = self.face_index(name)
+        return Pose(self.face_to_camera.rotation_matrix[i], self.face_to_camera.translation[i])
+
+    def project_faces(
+        self, points: Float[ArrayLike, "*batch 3"]
+    ) -> tuple[Int[Array, "*batch"], Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
+        """``(face index, pixel in that face, valid)`` of rig-frame points (dominant-axis rule)."""
+        p = jnp.asarray(points)
+        if p.shape[-1:] != (3,):
+            raise ValueError(f"CubeRig.project_faces: points must have shape (..., 3), got {p.shape}")
+        dtype = float_dtype(p)
+        p = p.astype(dtype)
+        rots = self.face_to_camera.rotation_matrix.astype(dtype)  # (F, 3, 3)
+        axes = rots[:, :, 2]  # each face's optical axis in the rig frame, (F, 3)
+        along = jnp.einsum("...k,fk->...f", p, axes)
+        idx = jnp.argmax(along, axis=-1)
+        r_sel = rots[idx]  # (..., 3, 3)
+        local = jnp.einsum("...kj,...k->...j", r_sel, p)  # R^T p
+        uv, valid = self.face.project(local)
+        valid = valid & self.face.contains(uv)
+        return idx, uv, valid
+
+    def project(
+        self, points: Float[ArrayLike, "*batch 3"]
+    ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
+        """Pixel within the dominant face (see `project_faces` for the face index)."""
+        _, uv, valid = self.project_faces(points)
+        return uv, valid
+
+    def unproject_faces(
+        self, face_index: Int[ArrayLike, "*batch"], uv: Float[ArrayLike, "*batch 2"]
+    ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+        """Rig-frame unit rays of face pixels (face given by index)."""
+        uv = jnp.asarray(uv)
+        dtype = float_dtype(uv)
+        local, valid = self.face.unproject(uv.astype(dtype))
+        rots = self.face_to_camera.rotation_matrix.astype(dtype)[jnp.asarray(face_index)]
+        return jnp.einsum("...jk,...k->...j", rots, local), valid
+
+    def unproject(
+        self, uv: Float[ArrayLike, "*batch 2"]
+    ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+        """Rays of pixels of the *first* face (use `unproject_faces` to name the face)."""
+        uv = jnp.asarray(uv)
+        return self.unproject_faces(jnp.zeros(uv.shape[:-1], jnp.int32), uv)
+
+
+def cube_face_size(camera: WoodScapeFisheye, *, multiple: int = 32, oversample: float = 1.0) -> int:
+    """Smallest face size ``S`` (a multiple of `multiple`) whose faces never undersample the fisheye.
+
+    A 90-degree face has focal ``S/2`` pixels per radian at its centre, its lowest angular density;
+    the fisheye's densest direction inside its image is ``max(d rho/d theta, rho / sin theta)``
+    (radial and tangential pixels per radian) over the image's incidence angles. So
+    ``S >= 2 * oversample * max_density`` (CONVENTIONS §7).
+    """
+    cam = camera
+    h, w = camera.height, camera.width
+    # Incidence angles reached inside the image: the corners bound them.
+    corners = jnp.asarray([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]], dtype=cam.k.dtype)
+    rays, valid = cam.unproject(corners)
+    cos_t = jnp.where(valid, rays[..., 2], -1.0)
+    theta_img = float(jnp.arccos(jnp.clip(jnp.min(cos_t), -1.0, 1.0)))
+    theta_img = min(theta_img, float(cam.theta_max()))
+    thetas = np.linspace(1e-3, theta_img, 2048)
+    k = np.asarray(cam.k, dtype=np.float64)
+    drho = k[0] + thetas * (2 * k[1] + thetas * (3 * k[2] + thetas * 4 * k[3]))
+    rho = thetas * (k[0] + thetas * (k[1] + thetas * (k[2] + thetas * k[3])))
+    a = float(np.max(np.asarray(cam.aspect_ratio)))
+    density = np.maximum(drho, rho / np.sin(thetas)) * max(a, 1.0)
+    s = 2.0 * oversample * float(np.max(density))
+    return int(math.ceil(s / multiple) * multiple)
