@@ -1,0 +1,125 @@
+"""The double sphere camera model (Usenko, Demmel and Cremers, 3DV 2018)."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from .._numerics import float_dtype, resolve_dtype, safe_norm
+from ._base import AbstractCamera
+from ._unified import _safe_sqrt, unified_w
+
+
+def double_sphere_w2(xi: Array, alpha: Array) -> Array:
+    """w2 = (w1 + ξ) / sqrt(2 w1 ξ + ξ² + 1): the projection domain is ``z > -w2 |p|``."""
+    w1 = unified_w(alpha)
+    return (w1 + xi) / _safe_sqrt(2 * w1 * xi + xi * xi + 1)
+
+
+class DoubleSphere(AbstractCamera):
+    """The double sphere model: a point is projected onto two unit spheres ``ξ`` apart, then by
+    a unified (α) projection.
+
+    With ``d1 = |(X, Y, Z)|`` and ``d2 = |(X, Y, ξ d1 + Z)|`` (OpenCV camera frame)::
+
+        u = fx X / (α d2 + (1-α)(ξ d1 + Z)) + cx,   v = fy Y / (α d2 + (1-α)(ξ d1 + Z)) + cy
+
+    ``ξ`` in [-1, 1], ``α`` in [0, 1]. Valid domain ``Z > -w2 d1`` (`double_sphere_w2`), i.e.
+    incidence angles below ``theta_max = arccos(-w2)``, beyond 90 degrees whenever
+    ``w1 + ξ > 0``. Unprojection (closed form)::
+
+        mz = (1 - α² r²) / (α sqrt(1 - (2α-1) r²) + 1 - α)
+        ray = (mz ξ + sqrt(mz² + (1-ξ²) r²)) / (mz² + r²) (mx, my, mz) - (0, 0, ξ)
+
+    defined for α <= 0.5 or ``r² <= 1/(2α-1)`` (``r`` = distance to the principal point in
+    focal units); a pixel is valid when its ray is in the domain. Pixel-centre convention;
+    finite values and gradients everywhere.
+
+    Fields: `fx`, `fy`, `cx`, `cy` (pixels), `xi`, `alpha`, `width`, `height` (static).
+    """
+
+    fx: Float[Array, ""]
+    fy: Float[Array, ""]
+    cx: Float[Array, ""]
+    cy: Float[Array, ""]
+    xi: Float[Array, ""]
+    alpha: Float[Array, ""]
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+
+    def __init__(self, fx, fy, cx, cy, xi, alpha, *, width: int, height: int, dtype=None):
+        dtype = resolve_dtype(dtype, fx)
+        self.fx = jnp.asarray(fx, dtype=dtype)
+        self.fy = jnp.asarray(fy, dtype=dtype)
+        self.cx = jnp.asarray(cx, dtype=dtype)
+        self.cy = jnp.asarray(cy, dtype=dtype)
+        self.xi = jnp.asarray(xi, dtype=dtype)
+        self.alpha = jnp.asarray(alpha, dtype=dtype)
+        width, height = int(width), int(height)
+        if width <= 0 or height <= 0:
+            raise ValueError(f"DoubleSphere: image size must be positive, got {width}x{height}")
+        self.width = width
+        self.height = height
+
+    @property
+    def principal_point(self) -> Float[Array, "2"]:
+        """``(cx, cy)`` in pixel-centre coordinates."""
+        return jnp.stack([self.cx, self.cy], axis=-1)
+
+    def theta_max(self, dtype=None) -> Float[Array, ""]:
+        """Supremum of the valid incidence angles (radians): ``arccos(-w2)``."""
+        dtype = resolve_dtype(dtype, self.alpha)
+        xi = jax.lax.stop_gradient(self.xi.astype(dtype))
+        alpha = jax.lax.stop_gradient(self.alpha.astype(dtype))
+        return jnp.arccos(jnp.clip(-double_sphere_w2(xi, alpha), -1.0, 1.0))
+
+    def project(
+        self, points: Float[ArrayLike, "*batch 3"]
+    ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
+        """Pixels ``(..., 2)`` of camera-frame points ``(..., 3)`` and their validity."""
+        p = jnp.asarray(points)
+        if p.shape[-1:] != (3,):
+            raise ValueError(f"DoubleSphere.project: points must have shape (..., 3), got {p.shape}")
+        dtype = float_dtype(p)
+        p = p.astype(dtype)
+        xi = self.xi.astype(dtype)
+        alpha = self.alpha.astype(dtype)
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
+        d1 = safe_norm(p)
+        zz = xi * d1 + z
+        d2 = _safe_sqrt(x * x + y * y + zz * zz)
+        valid = (d1 > 0) & (z > -double_sphere_w2(xi, alpha) * d1)
+        denom = alpha * d2 + (1 - alpha) * zz
+        valid = valid & (denom > 0)
+        inv = 1.0 / jnp.where(valid, denom, jnp.ones_like(denom))
+        u = self.fx.astype(dtype) * x * inv + self.cx.astype(dtype)
+        v = self.fy.astype(dtype) * y * inv + self.cy.astype(dtype)
+        return jnp.stack([u, v], axis=-1), valid
+
+    def unproject(
+        self, uv: Float[ArrayLike, "*batch 2"]
+    ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+        """Unit rays ``(..., 3)`` of pixels ``(..., 2)`` and their validity."""
+        uv = jnp.asarray(uv)
+        if uv.shape[-1:] != (2,):
+            raise ValueError(f"DoubleSphere.unproject: uv must have shape (..., 2), got {uv.shape}")
+        dtype = float_dtype(uv)
+        uv = uv.astype(dtype)
+        xi = self.xi.astype(dtype)
+        alpha = self.alpha.astype(dtype)
+        mx = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
+        my = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)
+        r2 = mx * mx + my * my
+        disc = 1 - (2 * alpha - 1) * r2
+        inside = (alpha <= 0.5) | (disc >= 0)
+        mz = (1 - alpha * alpha * r2) / (alpha * _safe_sqrt(disc) + 1 - alpha)
+        disc2 = mz * mz + (1 - xi * xi) * r2
+        inside = inside & (disc2 >= 0)
+        factor = (mz * xi + _safe_sqrt(disc2)) / (mz * mz + r2)
+        ray = jnp.stack([factor * mx, factor * my, factor * mz - xi], axis=-1)
+        norm = safe_norm(ray, keepdims=True)
+        ray = ray / jnp.where(norm > 0, norm, jnp.ones_like(norm))
+        _, back = self.project(ray)
+        return ray, inside & back & (norm[..., 0] > 0)

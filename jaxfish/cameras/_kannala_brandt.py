@@ -1,0 +1,223 @@
+"""The Kannala-Brandt / OpenCV fisheye model (4 odd distortion coefficients), valid beyond 90 degrees."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from .._numerics import eps_for, float_dtype, resolve_dtype, safe_norm, stack_last, theta_over_sin
+from ._base import AbstractCamera
+
+#: Grid and bisection steps used to locate the first stationary point of theta_d(theta) on [0, pi].
+_GRID = 2048
+_BISECTIONS = 60
+#: When theta_d(theta) has a stationary point theta_s <= pi, the valid domain is
+#: [0, theta_s - margin] (same rule as `WoodScapeFisheye`).
+KB_THETA_MAX_MARGIN_RAD = 1e-3
+_MAX_NEWTON_STEPS = 32
+_GUESS_STEPS = 3
+
+
+def first_increasing_limit(derivative, params, dtype, *, margin: float = KB_THETA_MAX_MARGIN_RAD) -> Float[Array, ""]:
+    """Largest theta in [0, pi] up to which ``derivative(params, theta) > 0`` holds from 0 on.
+
+    Returns pi when the derivative stays positive on the whole grid, else the first sign change
+    (grid + bisection, exact to float precision) minus ``margin``; 0 if the derivative is not
+    positive at 0. Not differentiated: a domain boundary is a mask, not a value.
+    """
+    params = jax.lax.stop_gradient(params)
+    grid = jnp.linspace(0.0, math.pi, _GRID + 1, dtype=dtype)
+    bad = derivative(params, grid) <= 0
+    first = jnp.argmax(bad)
+    lo = grid[jnp.maximum(first - 1, 0)]
+    hi = grid[first]
+
+    def bisect(_, bracket):
+        a, b = bracket
+        m = 0.5 * (a + b)
+        m_bad = derivative(params, m) <= 0
+        return jnp.where(m_bad, a, m), jnp.where(m_bad, m, b)
+
+    lo, hi = jax.lax.fori_loop(0, _BISECTIONS, bisect, (lo, hi))
+    stationary = jnp.maximum(lo - margin, 0.0)
+    return jnp.where(jnp.any(bad), stationary, jnp.asarray(math.pi, dtype))
+
+
+def theta_d_of_theta(k: Float[Array, "4"], theta: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+    """theta_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸) (OpenCV fisheye distortion)."""
+    t2 = theta * theta
+    return theta * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+
+
+def dtheta_d_dtheta(k: Float[Array, "4"], theta: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+    """d theta_d / d theta = 1 + 3 k1 θ² + 5 k2 θ⁴ + 7 k3 θ⁶ + 9 k4 θ⁸."""
+    t2 = theta * theta
+    return 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * (9 * k[3]))))
+
+
+def _kb_theta_max(k: Float[Array, "4"]) -> Float[Array, ""]:
+    return first_increasing_limit(dtheta_d_dtheta, k, k.dtype)
+
+
+def _residual(theta, args):
+    k, theta_d = args
+    return theta_d_of_theta(k, theta) - theta_d  # radians already
+
+
+def solve_theta_kb(
+    k: Float[Array, "4"], theta_d: Float[Array, "*batch"], theta_max: Float[Array, ""]
+) -> tuple[Float[Array, "*batch"], Bool[Array, "*batch"]]:
+    """Invert theta_d(theta) = theta_d on [0, theta_max] with an element-wise optimistix Newton
+    (diagonal Jacobian, fused clipped-Newton initial guess from ``theta = theta_d``). Gradients
+    are implicit (exact). Returns ``(theta, converged)`` with a per-element residual check."""
+    dtype = theta_d.dtype
+    tol = 1e-11 if dtype == jnp.float64 else 4e-6
+    kk = jax.lax.stop_gradient(k)
+    td0 = jax.lax.stop_gradient(theta_d)
+    theta0 = jnp.clip(td0, 0.0, theta_max)
+    for _ in range(_GUESS_STEPS):
+        step = (theta_d_of_theta(kk, theta0) - td0) / jnp.maximum(dtheta_d_dtheta(kk, theta0), eps_for(dtype))
+        theta0 = jnp.clip(theta0 - step, 0.0, theta_max)
+    sol = optx.root_find(
+        _residual,
+        optx.Newton(rtol=tol, atol=tol),
+        theta0,
+        args=(k, theta_d),
+        options=dict(lower=jnp.zeros((), dtype), upper=theta_max.astype(dtype)),
+        max_steps=_MAX_NEWTON_STEPS,
+        throw=False,
+        tags=frozenset({lx.diagonal_tag}),
+    )
+    theta = sol.value
+    residual = jnp.abs(theta_d_of_theta(k, theta) - theta_d)
+    converged = (residual <= 64 * eps_for(dtype) * jnp.maximum(jnp.abs(theta_d), 1.0)) & jnp.isfinite(theta)
+    theta = jnp.where(jnp.isfinite(theta), theta, jnp.zeros_like(theta))
+    return theta, converged
+
+
+class KannalaBrandt(AbstractCamera):
+    """The Kannala-Brandt model as OpenCV's ``cv2.fisheye`` (4 odd coefficients, no skew).
+
+    Projection of a camera-frame point ``(X, Y, Z)`` (OpenCV frame)::
+
+        theta = atan2(sqrt(X² + Y²), Z)                       # in [0, pi]
+        theta_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸)
+        u = fx theta_d X / chi + cx,   v = fy theta_d Y / chi + cy
+
+    ``(cx, cy)`` is the pixel of the optical axis in jaxfish's pixel-centre convention (integer
+    coordinates at pixel centres: the same as OpenCV's). Unlike ``cv2.fisheye`` (which clamps at
+    90 degrees), the model is used on its whole **valid domain** ``[0, theta_max]``: ``theta_max``
+    is pi when theta_d(θ) increases on [0, pi], else its first stationary point minus
+    `KB_THETA_MAX_MARGIN_RAD`. Points beyond it, the camera centre and the ray straight behind
+    the axis are invalid; pixels with ``|((u-cx)/fx, (v-cy)/fy)| > theta_d(theta_max)`` have no
+    ray. Values and gradients are finite everywhere, including the principal point.
+
+    Fields: `fx`, `fy`, `cx`, `cy` (pixels), `k` ``(4,)`` (dimensionless), `width`, `height` (static).
+    """
+
+    fx: Float[Array, ""]
+    fy: Float[Array, ""]
+    cx: Float[Array, ""]
+    cy: Float[Array, ""]
+    k: Float[Array, "4"]
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+
+    def __init__(self, fx, fy, cx, cy, k: Float[ArrayLike, "4"] = (0.0, 0.0, 0.0, 0.0), *, width: int, height: int,
+                 dtype=None):
+        dtype = resolve_dtype(dtype, fx)
+        self.fx = jnp.asarray(fx, dtype=dtype)
+        self.fy = jnp.asarray(fy, dtype=dtype)
+        self.cx = jnp.asarray(cx, dtype=dtype)
+        self.cy = jnp.asarray(cy, dtype=dtype)
+        k = jnp.asarray(k, dtype=dtype)
+        if k.shape[-1:] != (4,):
+            raise ValueError(f"KannalaBrandt: k must have shape (..., 4), got {k.shape}")
+        self.k = k
+        width, height = int(width), int(height)
+        if width <= 0 or height <= 0:
+            raise ValueError(f"KannalaBrandt: image size must be positive, got {width}x{height}")
+        self.width = width
+        self.height = height
+
+    @property
+    def principal_point(self) -> Float[Array, "2"]:
+        """``(cx, cy)`` in pixel-centre coordinates."""
+        return jnp.stack([self.cx, self.cy], axis=-1)
+
+    @property
+    def intrinsic_matrix(self) -> Float[Array, "3 3"]:
+        """OpenCV's K (pixel-centre convention, no skew), for ``cv2.fisheye`` with ``D = k``."""
+        z = jnp.zeros_like(self.fx)
+        return jnp.stack([jnp.stack([self.fx, z, self.cx]), jnp.stack([z, self.fy, self.cy]),
+                          jnp.stack([z, z, jnp.ones_like(self.fx)])])
+
+    def theta_d(self, theta: Float[ArrayLike, "*batch"]) -> Float[Array, "*batch"]:
+        """Distorted angle theta_d (radians) of the incidence angle theta (radians)."""
+        theta = jnp.asarray(theta)
+        dtype = float_dtype(theta)
+        return theta_d_of_theta(self.k.astype(dtype), theta.astype(dtype))
+
+    def theta_max(self, dtype=None) -> Float[Array, ""]:
+        """Largest valid incidence angle (radians), see the class docstring."""
+        dtype = resolve_dtype(dtype, self.k)
+        return _kb_theta_max(self.k.astype(dtype))
+
+    def project(
+        self, points: Float[ArrayLike, "*batch 3"]
+    ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
+        """Pixels ``(..., 2)`` of camera-frame points ``(..., 3)`` and their validity."""
+        p = jnp.asarray(points)
+        if p.shape[-1:] != (3,):
+            raise ValueError(f"KannalaBrandt.project: points must have shape (..., 3), got {p.shape}")
+        dtype = float_dtype(p)
+        p = p.astype(dtype)
+        k = self.k.astype(dtype)
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
+        chi = safe_norm(p[..., :2])
+        r = safe_norm(p)
+        nonzero = r > 0
+        theta = jnp.arctan2(jnp.where(nonzero, chi, 0.0), jnp.where(nonzero, z, 1.0))
+        # theta_d / chi = (theta_d / θ) (θ / sin θ) / r: smooth at chi = 0.
+        t2 = theta * theta
+        td_over_t = 1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])))
+        ratio = td_over_t * theta_over_sin(theta) / jnp.where(nonzero, r, 1.0)
+        u = self.fx.astype(dtype) * x * ratio + self.cx.astype(dtype)
+        v = self.fy.astype(dtype) * y * ratio + self.cy.astype(dtype)
+        behind_axis = (jnp.sin(theta) <= eps_for(dtype)) & (theta > 1.0)
+        valid = nonzero & (theta <= self.theta_max(dtype)) & ~behind_axis
+        return jnp.stack([u, v], axis=-1), valid
+
+    def unproject(
+        self, uv: Float[ArrayLike, "*batch 2"]
+    ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
+        """Unit rays ``(..., 3)`` of pixels ``(..., 2)``; invalid beyond ``theta_d(theta_max)``."""
+        uv = jnp.asarray(uv)
+        if uv.shape[-1:] != (2,):
+            raise ValueError(f"KannalaBrandt.unproject: uv must have shape (..., 2), got {uv.shape}")
+        dtype = float_dtype(uv)
+        uv = uv.astype(dtype)
+        k = self.k.astype(dtype)
+        mx = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
+        my = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)
+        r2 = mx * mx + my * my
+        td = jnp.where(r2 > 0, jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)), 0.0)
+        td = jax.lax.optimization_barrier(td)
+        theta_max = self.theta_max(dtype)
+        td_max = theta_d_of_theta(jax.lax.stop_gradient(k), theta_max)
+        inside = td <= td_max
+        theta, converged = solve_theta_kb(k, jnp.minimum(td, td_max), theta_max)
+        # sin(θ)/theta_d, with its Taylor expansion near the principal point.
+        tau = jnp.asarray(math.sqrt(eps_for(dtype)) * 100, dtype)
+        small = td < tau
+        safe_td = jnp.where(small, jnp.ones_like(td), td)
+        taylor = 1 - (k[0] + 1.0 / 6.0) * td * td
+        s = jnp.where(small, taylor, jnp.sin(theta) / safe_td)
+        ray = stack_last([mx * s, my * s, jnp.cos(theta)])
+        return ray, inside & converged
