@@ -213,6 +213,9 @@ class WoodScapeFisheye(AbstractCamera):
         return rho_of_theta(k, theta_max_of(k))
 
     # ----------------------------------------------------------------------------- model
+    # Both methods are `eqx.filter_jit`-compiled: eager calls hit a compilation cache instead of
+    # re-tracing the root finder op by op; inside a user's jit they simply inline.
+    @eqx.filter_jit
     def project(
         self, points: Float[ArrayLike, "*batch 3"]
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
@@ -244,6 +247,7 @@ class WoodScapeFisheye(AbstractCamera):
         valid = nonzero & (theta <= self.theta_max(dtype)) & ~behind_axis
         return jnp.stack([u, v], axis=-1), valid
 
+    @eqx.filter_jit
     def unproject(
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
