@@ -13,10 +13,10 @@ from ._calibration import Calibration
 # counter-clockwise from vehicle +x) and downward tilt (degrees). A generic ~190-degree lens on a
 # mid-size car; rho(theta) is strictly increasing on [0, pi] for all four.
 _DEFAULT_RIG = {
-    "FV": dict(k=(336.0, -24.0, 36.0, -4.0), off=(2.5, -2.0), aspect=1.0, t=(3.70, 0.0, 0.62), yaw=0.0, tilt=18.0),
-    "MVL": dict(k=(335.0, -20.0, 30.0, -2.0), off=(-1.5, -2.5), aspect=1.0, t=(1.95, 1.02, 0.98), yaw=90.0, tilt=42.0),
-    "MVR": dict(k=(337.0, -21.0, 31.0, -2.5), off=(1.0, -1.0), aspect=1.0, t=(1.95, -1.02, 0.98), yaw=-90.0, tilt=42.0),
-    "RV": dict(k=(334.0, -23.0, 34.0, -3.0), off=(-2.0, 1.5), aspect=1.0, t=(-1.05, 0.0, 0.92), yaw=180.0, tilt=28.0),
+    "FV": dict(k=(336.0, -24.0, 36.0, -4.0), off=(2.5, -2.0), aspect=1.0, t=(3.70, 0.0, 0.62), yaw=0.0, tilt=22.0),
+    "MVL": dict(k=(335.0, -20.0, 30.0, -2.0), off=(-1.5, -2.5), aspect=1.0, t=(1.95, 1.02, 0.98), yaw=90.0, tilt=62.0),
+    "MVR": dict(k=(337.0, -21.0, 31.0, -2.5), off=(1.0, -1.0), aspect=1.0, t=(1.95, -1.02, 0.98), yaw=-90.0, tilt=62.0),
+    "RV": dict(k=(334.0, -23.0, 34.0, -3.0), off=(-2.0, 1.5), aspect=1.0, t=(-1.05, 0.0, 0.92), yaw=180.0, tilt=36.0),
 }
 DEFAULT_WIDTH = 1280
 DEFAULT_HEIGHT = 966
