@@ -1,0 +1,435 @@
+"""The JAX ray caster: nearest hit of rays against the scene's ground, boxes and capsules.
+
+Everything here is pure JAX, jitted and chunked (``lax.map`` over fixed-size chunks of rays), so
+memory stays bounded at any image size. The `Scene` is a jit *argument*. Frames: world = CARLA
+(left-handed, x forward, y right, z up, metres); a camera pose ``camera_to_world`` maps the
+camera model's frame (OpenCV) to world coordinates (it has determinant -1: it changes handedness).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from ..cameras import AbstractCamera
+from ..transforms import Pose
+from ._model import (
+    TEXTURE_CHECKER,
+    TEXTURE_NOISE,
+    TEXTURE_STRIPES,
+    TEXTURE_WINDOWS,
+    Scene,
+)
+from ._tags import CARLA_SEMANTIC_TAGS as TAGS
+
+#: Far plane (metres): no hit beyond it; sky and far pixels report this range and depth
+#: (CARLA's depth camera saturates at 1000 m).
+FAR_M = 1000.0
+#: Rays per chunk of the caster (bounds the (rays x primitives) working set).
+DEFAULT_CHUNK = 4096
+#: Hits closer than this to the ray origin are ignored (metres).
+_T_MIN = 1e-4
+_F32 = jnp.float32
+
+
+class RenderBuffers(eqx.Module):
+    """Per-pixel (or per-ray) results of a render; every field has the batch shape of the pixels.
+
+    - `valid`: the camera has a ray for this pixel (False beyond a fisheye's domain);
+    - `hit`: the ray hit geometry closer than `FAR_M` (False: sky, or invalid);
+    - `range_m`: distance from the ray origin to the hit along the ray (metres), `FAR_M` for sky;
+    - `depth_m`: planar depth, the hit's z in the camera frame (metres), `FAR_M` for sky;
+    - `rgb`: linear RGB in [0, 1] (albedo x Lambert shading; sky gradient where no hit);
+    - `semantic`: CARLA 0.9.10 tag (13 sky; 0 where the camera has no ray);
+    - `object_index`: index into the scene's objects, -1 for ground and sky;
+    - `actor_id`: CARLA-style id of the hit actor, 0 for static world, ground and sky;
+    - `point_world`, `normal_world`: hit point and outward unit normal (world, CARLA frame);
+      for sky the point is at `FAR_M` along the ray and the normal is zero.
+    """
+
+    valid: Bool[Array, "*batch"]
+    hit: Bool[Array, "*batch"]
+    range_m: Float[Array, "*batch"]
+    depth_m: Float[Array, "*batch"]
+    rgb: Float[Array, "*batch 3"]
+    semantic: Int[Array, "*batch"]
+    object_index: Int[Array, "*batch"]
+    actor_id: Int[Array, "*batch"]
+    point_world: Float[Array, "*batch 3"]
+    normal_world: Float[Array, "*batch 3"]
+
+
+# ------------------------------------------------------------------------------ closed forms
+def ray_box_distance(
+    origin: Float[Array, "*batch 3"], direction: Float[Array, "*batch 3"], half_extent: Float[Array, "*batch 3"]
+) -> Float[Array, "*batch"]:
+    """Entry distance of rays into axis-aligned boxes centred at the origin (slab method), in the
+    box frame; ``inf`` when missed or when the box is behind (or around) the origin. ``direction``
+    need not be normalised (the distance is in units of its length)."""
+    tiny = jnp.asarray(1e-12, direction.dtype)
+    d = jnp.where(jnp.abs(direction) < tiny, jnp.where(direction < 0, -tiny, tiny), direction)
+    inv = 1.0 / d
+    t1 = (-half_extent - origin) * inv
+    t2 = (half_extent - origin) * inv
+    t_near = jnp.max(jnp.minimum(t1, t2), axis=-1)
+    t_far = jnp.min(jnp.maximum(t1, t2), axis=-1)
+    hit = (t_near <= t_far) & (t_near > _T_MIN)
+    return jnp.where(hit, t_near, jnp.inf)
+
+
+def _sphere_entry(ox, oy, oz, dx, dy, dz, r):
+    b = ox * dx + oy * dy + oz * dz
+    c = ox * ox + oy * oy + oz * oz - r * r
+    disc = b * b - c
+    t = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
+    return jnp.where((disc >= 0) & (t > _T_MIN), t, jnp.inf)
+
+
+def ray_capsule_distance(
+    origin: Float[Array, "*batch 3"], direction: Float[Array, "*batch 3"],
+    half_length: Float[Array, "*batch"], radius: Float[Array, "*batch"],
+) -> Float[Array, "*batch"]:
+    """Entry distance of **unit** rays into capsules whose segment runs from ``(0, 0, -half_length)``
+    to ``(0, 0, half_length)`` (capsule frame), ``inf`` when missed. The entry into the union of the
+    side cylinder and the two end spheres is the smallest entry of the three; rays parallel to the
+    axis (top views) only meet the spheres."""
+    ox, oy, oz = origin[..., 0], origin[..., 1], origin[..., 2]
+    dx, dy, dz = direction[..., 0], direction[..., 1], direction[..., 2]
+    a = dx * dx + dy * dy
+    b = ox * dx + oy * dy
+    c = ox * ox + oy * oy - radius * radius
+    disc = b * b - a * c
+    ok = (a > 1e-12) & (disc >= 0)
+    t_cyl = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(ok, a, 1.0)
+    z = oz + t_cyl * dz
+    t_cyl = jnp.where(ok & (t_cyl > _T_MIN) & (jnp.abs(z) <= half_length), t_cyl, jnp.inf)
+    t_top = _sphere_entry(ox, oy, oz - half_length, dx, dy, dz, radius)
+    t_bot = _sphere_entry(ox, oy, oz + half_length, dx, dy, dz, radius)
+    return jnp.minimum(t_cyl, jnp.minimum(t_top, t_bot))
+
+
+def ray_ground_distance(origin: Float[Array, "*batch 3"], direction: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
+    """Distance along rays to the ground plane z = 0 from above, ``inf`` when the ray does not
+    descend towards it."""
+    oz, dz = origin[..., 2], direction[..., 2]
+    down = (dz < -1e-9) & (oz > 0)
+    return jnp.where(down, -oz / jnp.where(down, dz, -1.0), jnp.inf)
+
+
+# ------------------------------------------------------------------------------ textures
+def _hash(cell: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
+    h = jnp.sin(cell[..., 0] * 12.9898 + cell[..., 1] * 78.233 + cell[..., 2] * 37.719) * 43758.5453
+    return h - jnp.floor(h)
+
+
+def _texture(q, n_local, kind, scale):
+    """Procedural texture value in [0, 1] at object-local point ``q`` (moves with the object)."""
+    s = scale[..., None]
+    cell = jnp.floor(q / s)
+    frac = q / s - cell
+    noise = _hash(cell)
+    checker = jnp.mod(jnp.sum(cell, axis=-1), 2.0)
+    along = jnp.where(jnp.abs(n_local[..., 0]) > 0.5, frac[..., 1], frac[..., 0])
+    window = (frac[..., 2] > 0.3) & (frac[..., 2] < 0.75) & (along > 0.2) & (along < 0.8) & (jnp.abs(n_local[..., 2]) < 0.5)
+    stripes = jnp.mod(jnp.floor((q[..., 0] + q[..., 1] + q[..., 2]) / scale), 2.0)
+    tex = jnp.ones_like(noise)
+    tex = jnp.where(kind == TEXTURE_CHECKER, 0.6 + 0.4 * checker, tex)
+    tex = jnp.where(kind == TEXTURE_NOISE, 0.55 + 0.45 * noise, tex)
+    tex = jnp.where(kind == TEXTURE_WINDOWS, jnp.where(window, 0.25 + 0.2 * noise, 0.85 + 0.15 * noise), tex)
+    tex = jnp.where(kind == TEXTURE_STRIPES, 0.55 + 0.45 * stripes, tex)
+    return tex
+
+
+def ground_semantic_and_albedo(scene: Scene, xy: Float[Array, "*batch 2"]) -> tuple[Int[Array, "*batch"], Float[Array, "*batch 3"]]:
+    """CARLA tag (road, roadline, sidewalk, terrain) and albedo of ground points ``(x, y)`` (world)."""
+    x, y = xy[..., 0], xy[..., 1]
+    ay = jnp.abs(y)
+    road = ay < scene.road_half_width
+    centre = ay < 0.12
+    dashes = (jnp.abs(ay - scene.lane_width) < 0.075) & (x / 6.0 - jnp.floor(x / 6.0) < 0.5)
+    line = road & (centre | dashes)
+    sidewalk = ~road & (ay < scene.road_half_width + scene.sidewalk_width)
+    tag = jnp.where(line, TAGS["roadline"], jnp.where(road, TAGS["road"], jnp.where(sidewalk, TAGS["sidewalk"], TAGS["terrain"])))
+    z = jnp.zeros_like(x)
+    cell = jnp.floor(jnp.stack([x, y, z], axis=-1) / 0.5)
+    noise = _hash(cell)
+    tiles = jnp.mod(cell[..., 0] + cell[..., 1], 2.0)
+    col = lambda r, g, b: jnp.asarray([r, g, b], x.dtype)  # noqa: E731
+    albedo = jnp.where(line[..., None], col(0.9, 0.9, 0.85) * (0.9 + 0.1 * noise)[..., None],
+             jnp.where(road[..., None], col(0.26, 0.26, 0.28) * (0.7 + 0.3 * noise)[..., None],
+             jnp.where(sidewalk[..., None], col(0.62, 0.58, 0.55) * (0.8 + 0.2 * tiles)[..., None],
+                       col(0.3, 0.45, 0.18) * (0.6 + 0.4 * noise)[..., None])))
+    return tag.astype(jnp.int32), albedo
+
+
+def sky_rgb(direction: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
+    """The sky colour along world directions (a zenith-to-horizon gradient)."""
+    e = jnp.clip(direction[..., 2:3], 0.0, 1.0)
+    horizon = jnp.asarray([0.78, 0.84, 0.92], direction.dtype)
+    zenith = jnp.asarray([0.32, 0.52, 0.85], direction.dtype)
+    return horizon * (1 - e) + zenith * e
+
+
+# ------------------------------------------------------------------------------ casting
+class _Posed(eqx.Module):
+    box_center: Array
+    box_cos: Array
+    box_sin: Array
+    cap_center: Array
+    cap_cos: Array
+    cap_sin: Array
+
+
+def _pose_primitives(scene: Scene, time) -> _Posed:
+    loc, yaw = scene.object_poses(time)
+
+    def place(obj, center, extra_yaw):
+        c, s = jnp.cos(yaw[obj]), jnp.sin(yaw[obj])
+        x = c * center[:, 0] - s * center[:, 1]
+        y = s * center[:, 0] + c * center[:, 1]
+        world = jnp.stack([x, y, center[:, 2]], axis=-1) + loc[obj]
+        yw = yaw[obj] + extra_yaw
+        return world, jnp.cos(yw), jnp.sin(yw)
+
+    bc, bcos, bsin = place(scene.box_object, scene.box_center, jnp.deg2rad(scene.box_yaw_deg))
+    kc, kcos, ksin = place(scene.capsule_object, scene.capsule_center, jnp.zeros_like(scene.capsule_radius))
+    return _Posed(bc, bcos, bsin, kc, kcos, ksin)
+
+
+def _to_local(v, c, s):
+    """World vectors ``(..., 3)`` -> a primitive's frame rotated by yaw (cos c, sin s)."""
+    x = c * v[..., 0] + s * v[..., 1]
+    y = -s * v[..., 0] + c * v[..., 1]
+    return jnp.stack([x, y, v[..., 2]], axis=-1)
+
+
+def _from_local(v, c, s):
+    x = c * v[..., 0] - s * v[..., 1]
+    y = s * v[..., 0] + c * v[..., 1]
+    return jnp.stack([x, y, v[..., 2]], axis=-1)
+
+
+def _slab(o, d, h):
+    tiny = 1e-12
+    d = jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d)
+    inv = 1.0 / d
+    t1 = (-h - o) * inv
+    t2 = (h - o) * inv
+    return jnp.minimum(t1, t2), jnp.maximum(t1, t2)
+
+
+def _box_t(o, d, posed: _Posed, scene: Scene):
+    """(C, B) entry distances, computed per component (no minor-axis stacking: it vectorises)."""
+    c, s = posed.box_cos[None], posed.box_sin[None]
+    rx = o[:, 0:1] - posed.box_center[None, :, 0]
+    ry = o[:, 1:2] - posed.box_center[None, :, 1]
+    rz = o[:, 2:3] - posed.box_center[None, :, 2]
+    ox, oy = c * rx + s * ry, -s * rx + c * ry
+    dx, dy = c * d[:, 0:1] + s * d[:, 1:2], -s * d[:, 0:1] + c * d[:, 1:2]
+    h = scene.box_half_extent
+    ax, bx = _slab(ox, dx, h[None, :, 0])
+    ay, by = _slab(oy, dy, h[None, :, 1])
+    az, bz = _slab(rz, jnp.broadcast_to(d[:, 2:3], rz.shape), h[None, :, 2])
+    t_near = jnp.maximum(jnp.maximum(ax, ay), az)
+    t_far = jnp.minimum(jnp.minimum(bx, by), bz)
+    ok = (t_near <= t_far) & (t_near > _T_MIN) & scene.box_active[None]
+    return jnp.where(ok, t_near, jnp.inf)
+
+
+def _capsule_t(o, d, posed: _Posed, scene: Scene):
+    """(C, K) entry distances of unit rays into the upright capsules (yaw does not matter)."""
+    ox = o[:, 0:1] - posed.cap_center[None, :, 0]
+    oy = o[:, 1:2] - posed.cap_center[None, :, 1]
+    oz = o[:, 2:3] - posed.cap_center[None, :, 2]
+    dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
+    hl, r = scene.capsule_half_length[None], scene.capsule_radius[None]
+    a = dx * dx + dy * dy
+    b = ox * dx + oy * dy
+    c = ox * ox + oy * oy - r * r
+    disc = b * b - a * c
+    ok = (a > 1e-12) & (disc >= 0)
+    t_cyl = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(ok, a, 1.0)
+    t_cyl = jnp.where(ok & (t_cyl > _T_MIN) & (jnp.abs(oz + t_cyl * dz) <= hl), t_cyl, jnp.inf)
+    # end spheres: b' = b + (oz -/+ hl) dz, c' = |oc|^2 - r^2
+    q = ox * ox + oy * oy - r * r
+    t_top = _sphere_entry2(b + (oz - hl) * dz, q + (oz - hl) * (oz - hl))
+    t_bot = _sphere_entry2(b + (oz + hl) * dz, q + (oz + hl) * (oz + hl))
+    t = jnp.minimum(t_cyl, jnp.minimum(t_top, t_bot))
+    return jnp.where(scene.capsule_active[None], t, jnp.inf)
+
+
+def _sphere_entry2(b, c):
+    disc = b * b - c
+    t = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
+    return jnp.where((disc >= 0) & (t > _T_MIN), t, jnp.inf)
+
+
+def _cast_chunk(scene: Scene, posed: _Posed, o: Float[Array, "C 3"], d: Float[Array, "C 3"]):
+    n_box = scene.box_center.shape[0]
+    t_box = _box_t(o, d, posed, scene)
+    t_cap = _capsule_t(o, d, posed, scene)
+    t_gnd = ray_ground_distance(o, d)
+    t_all = jnp.concatenate([t_gnd[:, None], t_box, t_cap], axis=1)
+    idx = jnp.argmin(t_all, axis=1)
+    t = jnp.min(t_all, axis=1)
+    hit = t < FAR_M
+    t_safe = jnp.where(hit, t, FAR_M).astype(o.dtype)
+    p = o + t_safe[:, None] * d
+
+    is_gnd = idx == 0
+    is_box = (idx >= 1) & (idx <= n_box)
+    bi = jnp.clip(idx - 1, 0, n_box - 1)
+    ki = jnp.clip(idx - 1 - n_box, 0, scene.capsule_center.shape[0] - 1)
+    # the winning primitive's frame
+    c = jnp.where(is_box, posed.box_cos[bi], posed.cap_cos[ki])
+    s = jnp.where(is_box, posed.box_sin[bi], posed.cap_sin[ki])
+    centre = jnp.where(is_box[:, None], posed.box_center[bi], posed.cap_center[ki])
+    q = _to_local(p - centre, c, s)
+    h = scene.box_half_extent[bi]
+    rel = jnp.abs(q) / jnp.maximum(h, 1e-6)
+    axis = jnp.argmax(rel, axis=-1)
+    n_box_local = jax.nn.one_hot(axis, 3, dtype=o.dtype) * jnp.where(q >= 0, 1.0, -1.0).astype(o.dtype)
+    hl = scene.capsule_half_length[ki]
+    axis_pt = jnp.stack([jnp.zeros_like(hl), jnp.zeros_like(hl), jnp.clip(q[:, 2], -hl, hl)], axis=-1)
+    radial = q - axis_pt
+    rn = jnp.sqrt(jnp.maximum(jnp.sum(radial * radial, axis=-1, keepdims=True), 1e-20))
+    n_cap_local = radial / rn
+    n_local = jnp.where(is_box[:, None], n_box_local, n_cap_local)
+    n_world = jnp.where(is_gnd[:, None], jnp.asarray([0.0, 0.0, 1.0], o.dtype), _from_local(n_local, c, s))
+    n_world = jnp.where(hit[:, None], n_world, 0.0)
+
+    kind = jnp.where(is_box, scene.box_texture[bi], scene.capsule_texture[ki])
+    scale = jnp.where(is_box, scene.box_texture_scale[bi], scene.capsule_texture_scale[ki])
+    tex = _texture(q, n_local, kind, scale)
+    prim_albedo = jnp.where(is_box[:, None], scene.box_albedo[bi], scene.capsule_albedo[ki]) * tex[:, None]
+    gnd_tag, gnd_albedo = ground_semantic_and_albedo(scene, p[:, :2])
+    albedo = jnp.where(is_gnd[:, None], gnd_albedo, prim_albedo)
+    shade = 0.4 + 0.6 * jnp.maximum(jnp.sum(n_world * scene.sun_direction, axis=-1), 0.0)
+    rgb = jnp.where(hit[:, None], albedo * shade[:, None], sky_rgb(d))
+
+    prim_tag = jnp.where(is_box, scene.box_tag[bi], scene.capsule_tag[ki])
+    semantic = jnp.where(hit, jnp.where(is_gnd, gnd_tag, prim_tag), TAGS["sky"])
+    obj = jnp.where(is_box, scene.box_object[bi], scene.capsule_object[ki])
+    obj = jnp.where(hit & ~is_gnd, obj, -1)
+    actor = jnp.where(obj >= 0, scene.object_actor_id[jnp.maximum(obj, 0)], 0)
+    return dict(hit=hit, range_m=t_safe, rgb=rgb.astype(o.dtype), semantic=semantic.astype(jnp.int32),
+                object_index=obj.astype(jnp.int32), actor_id=actor.astype(jnp.int32), point_world=p,
+                normal_world=n_world.astype(o.dtype))
+
+
+#: Rays per jitted call of the caster: every render is cut into blocks of this many rays (smaller
+#: renders use the next power-of-two multiple of the chunk), so all cameras share a few compilations.
+DEFAULT_BLOCK = 65536
+
+
+@eqx.filter_jit
+def _cast_block(scene: Scene, o, d, time, chunk_size: int):
+    n_chunks = o.shape[0] // chunk_size
+    posed = _pose_primitives(scene, time)
+    out = jax.lax.map(
+        lambda od: _cast_chunk(scene, posed, od[0], od[1]),
+        (o.reshape(n_chunks, chunk_size, 3), d.reshape(n_chunks, chunk_size, 3)),
+    )
+    return jax.tree_util.tree_map(lambda x: x.reshape((n_chunks * chunk_size,) + x.shape[2:]), out)
+
+
+def _cast_flat(scene: Scene, origins, directions, time, chunk_size: int, block_size: int = DEFAULT_BLOCK):
+    """Cast ``(N, 3)`` rays block by block (fixed shapes: few compilations, bounded memory)."""
+    n = origins.shape[0]
+    chunk = max(1, int(chunk_size))
+    block = max(chunk, (int(block_size) // chunk) * chunk)
+    size = chunk
+    while size < min(n, block):
+        size *= 2
+    size = min(size, block)
+    chunk = min(chunk, size)
+    time = jnp.asarray(time, _F32)
+    parts = []
+    for start in range(0, n, size):
+        o = origins[start : start + size]
+        d = directions[start : start + size]
+        m = o.shape[0]
+        if m < size:
+            o = jnp.concatenate([o, jnp.broadcast_to(o[:1], (size - m, 3))])
+            d = jnp.concatenate([d, jnp.broadcast_to(d[:1], (size - m, 3))])
+        out = _cast_block(scene, o, d, time, chunk)
+        parts.append(jax.tree_util.tree_map(lambda x, m=m: x[:m], out) if m < size else out)
+    if len(parts) == 1:
+        return parts[0]
+    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
+
+
+def cast_rays(
+    scene: Scene,
+    origins: Float[Array, "*batch 3"],
+    directions: Float[Array, "*batch 3"],
+    *,
+    time=1.0,
+    chunk_size: int = DEFAULT_CHUNK,
+) -> RenderBuffers:
+    """Nearest hit of world rays (CARLA frame, float32, ``directions`` unit) at ``time`` (fraction of
+    the frame interval: 0 = t-1, 1 = t). `depth_m` equals `range_m` here (no camera axis)."""
+    origins = jnp.asarray(origins, _F32)
+    directions = jnp.asarray(directions, _F32)
+    shape = origins.shape[:-1]
+    out = _cast_flat(scene, origins.reshape(-1, 3), directions.reshape(-1, 3), time, chunk_size)
+    out = jax.tree_util.tree_map(lambda x: x.reshape(shape + x.shape[1:]), out)
+    return RenderBuffers(valid=jnp.ones(shape, bool), depth_m=out["range_m"], **out)
+
+
+@eqx.filter_jit
+def _camera_rays(camera: AbstractCamera, camera_to_world: Pose, uv):
+    cam = camera.astype(_F32)
+    pose = Pose(camera_to_world.rotation_matrix, camera_to_world.translation, dtype=_F32)
+    dirs_cam, valid = cam.unproject(uv)
+    o = pose.apply(cam.ray_origins(uv))
+    d = pose.rotate(dirs_cam)
+    d = d / jnp.sqrt(jnp.maximum(jnp.sum(d * d, axis=-1, keepdims=True), 1e-30))
+    return o.reshape(-1, 3), d.reshape(-1, 3), valid, pose
+
+
+@eqx.filter_jit
+def _finish(out, valid, pose: Pose):
+    shape = valid.shape
+    out = jax.tree_util.tree_map(lambda x: x.reshape(shape + x.shape[1:]), out)
+    axis = pose.rotation_matrix[:, 2]
+    depth = jnp.sum((out["point_world"] - pose.translation) * axis, axis=-1)
+    hit = out["hit"] & valid
+    out["semantic"] = jnp.where(valid, out["semantic"], TAGS["unlabeled"])
+    out["rgb"] = jnp.where(valid[..., None], out["rgb"], 0.0)
+    out["object_index"] = jnp.where(valid, out["object_index"], -1)
+    out["actor_id"] = jnp.where(valid, out["actor_id"], 0)
+    out["hit"] = hit
+    return RenderBuffers(valid=valid, depth_m=jnp.where(hit, depth, FAR_M), **out)
+
+
+def render_pixels(
+    scene: Scene,
+    camera: AbstractCamera,
+    camera_to_world: Pose,
+    uv: Float[Array, "*batch 2"],
+    *,
+    time=1.0,
+    chunk_size: int = DEFAULT_CHUNK,
+) -> RenderBuffers:
+    """Render the pixels ``uv`` (any batch shape) of ``camera`` placed by ``camera_to_world``
+    (camera frame -> CARLA world) at ``time`` (0 = t-1, 1 = t). Works for every jaxfish camera
+    model, central or not (`AbstractCamera.ray_origins`)."""
+    uv = jnp.asarray(uv, _F32)
+    o, d, valid, pose = _camera_rays(camera, camera_to_world, uv)
+    out = _cast_flat(scene, o, d, time, chunk_size)
+    return _finish(out, valid, pose)
+
+
+def render(
+    scene: Scene,
+    camera: AbstractCamera,
+    camera_to_world: Pose,
+    *,
+    time=1.0,
+    chunk_size: int = DEFAULT_CHUNK,
+) -> RenderBuffers:
+    """Render every pixel of ``camera`` (buffers of shape ``(H, W, ...)``); see `render_pixels`."""
+    return render_pixels(scene, camera, camera_to_world, camera.pixel_grid(_F32), time=time, chunk_size=chunk_size)
