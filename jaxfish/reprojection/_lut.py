@@ -139,6 +139,7 @@ def _project_source(source: AbstractCamera, rays: Array):
     dtype = rays.dtype
     if isinstance(source, CubeRig):
         face, uv, valid = source.project_faces(rays)
+        face = face.astype(jnp.int32)
         rots = source.face_to_camera.rotation_matrix.astype(dtype)
         axis_z = rots[:, :, 2][face]  # each sample's face optical axis, rig frame
         ray_z = jnp.sum(axis_z * rays, axis=-1)
@@ -181,31 +182,72 @@ def build_lut(
     default: 1024-px faces keep ~1e-4 px).
     """
     dtype = resolve_dtype(dtype)
+    r = None
+    if target_to_source is not None:
+        r = jnp.asarray(target_to_source, dtype)
+        if r.shape != (3, 3):
+            raise ValueError(f"build_lut: target_to_source must be a 3x3 rotation matrix, got shape {r.shape}")
     n = int(supersample)
     offsets = jnp.asarray(supersample_offsets(n), dtype)  # (N, 2)
     grid = target.pixel_grid(dtype)  # (H, W, 2)
     uv_t = grid[:, :, None, :] + offsets  # (H, W, N, 2)
     rays, valid_t = target.unproject(uv_t)
     rays = rays.astype(dtype)
-    if target_to_source is not None:
-        r = jnp.asarray(target_to_source, dtype)
-        if r.shape != (3, 3):
-            raise ValueError(f"build_lut: target_to_source must be a 3x3 rotation matrix, got shape {r.shape}")
+    if r is not None:
         rays = jnp.einsum("ij,...j->...i", r, rays)
     face, uv, valid_s, z_to_range = _project_source(source, rays)
     valid = valid_t & valid_s
     if isinstance(source, CubeRig):
-        num_faces, sw, sh, pad = len(source.faces), source.width, source.height, 1
+        return _assemble(face, uv, valid, z_to_range, rig=source, width=source.width, height=source.height, n=n)
+    return _assemble(face, uv, valid, z_to_range, rig=None, width=source.width, height=source.height, n=n)
+
+
+def lut_from_map(
+    uv: Float[ArrayLike, "H W N 2"],
+    *,
+    source_width: int,
+    source_height: int,
+    valid: Bool[ArrayLike, "H W N"] | None = None,
+    z_to_range: Float[ArrayLike, "H W N"] | None = None,
+) -> Lut:
+    """A single-source LUT from an explicit coordinate map (like the maps of ``cv2.remap``).
+
+    ``uv`` holds source pixel coordinates (pixel-centre convention) per target pixel and sample;
+    ``valid`` defaults to "inside the source image" and ``z_to_range`` to 1. Taps are clamped
+    inside the source image (``cv2.BORDER_REPLICATE``); ``supersample`` is ``sqrt(N)`` and the
+    samples are assumed in the `supersample_offsets` order.
+    """
+    uv = jnp.asarray(uv)
+    if uv.ndim != 4 or uv.shape[-1] != 2:
+        raise ValueError(f"lut_from_map: uv must have shape (H, W, N, 2), got {uv.shape}")
+    n = int(round(uv.shape[2] ** 0.5))
+    if n * n != uv.shape[2]:
+        raise ValueError(f"lut_from_map: the sample axis must be a square number, got {uv.shape[2]}")
+    inside = (
+        (uv[..., 0] >= -0.5) & (uv[..., 0] <= source_width - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= source_height - 0.5)
+    )
+    valid = inside if valid is None else jnp.asarray(valid, bool) & inside
+    z = jnp.ones(uv.shape[:-1], uv.dtype) if z_to_range is None else jnp.asarray(z_to_range, uv.dtype)
+    face = jnp.zeros(uv.shape[:-1], jnp.int32)
+    uv = jnp.where(valid[..., None], uv, jnp.zeros_like(uv))
+    return _assemble(face, uv, valid, z, rig=None, width=int(source_width), height=int(source_height), n=n)
+
+
+def _assemble(face, uv, valid, z_to_range, *, rig: CubeRig | None, width: int, height: int, n: int) -> Lut:
+    dtype = uv.dtype
+    sw, sh = width, height
+    if rig is not None:
+        num_faces, pad = len(rig.faces), 1
     else:
-        num_faces, sw, sh, pad = 1, source.width, source.height, 0
+        num_faces, pad = 1, 0
     if sw < 2 or sh < 2:
         raise ValueError(f"build_lut: the source must be at least 2x2 pixels, got {sw}x{sh}")
     tap_index, tap_frac = _bilinear_taps(face, uv, width=sw, height=sh, pad=pad)
     nearest = _nearest_index(face, uv, width=sw, height=sh)
     tap_index = jnp.where(valid, tap_index, 0)
     nearest = jnp.where(valid, nearest, 0)
-    if isinstance(source, CubeRig):
-        ring_index, ring_frac, ring_valid = _ring_lut(source, dtype)
+    if rig is not None:
+        ring_index, ring_frac, ring_valid = _ring_lut(rig, dtype)
     else:
         ring_index = jnp.zeros((1, 0), jnp.int32)
         ring_frac = jnp.zeros((1, 0, 2), dtype)
@@ -239,6 +281,7 @@ def _ring_lut(rig: CubeRig, dtype):
     face_ids = jnp.broadcast_to(jnp.arange(f, dtype=jnp.int32)[:, None], (f, ring.shape[0]))
     rays, _ = rig.unproject_faces(face_ids, jnp.broadcast_to(ring, (f,) + ring.shape))
     face, uv, valid = rig.project_faces(rays)
+    face = face.astype(jnp.int32)
     valid = valid & (face != face_ids)
     uv = jnp.where(valid[..., None], uv, 0.0)
     face = jnp.where(valid, face, 0)
@@ -250,11 +293,6 @@ def ring_positions(size: int) -> np.ndarray:
     """Padded-face coordinates ``(x, y)`` (integers in ``[0, S + 1]``) of the ring pixels, in the
     order `Lut.ring_index` uses: shape ``(4 (S + 1), 2)``."""
     return (_ring_pixels(size) + 1).astype(np.int64)
-
-
-def lut_dtype(lut: Lut) -> jnp.dtype:
-    """The floating dtype of a LUT's coordinates."""
-    return lut.uv.dtype
 
 
 def stack_luts(luts: list[Lut]) -> Lut:

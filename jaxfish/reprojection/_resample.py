@@ -164,7 +164,7 @@ def _majority(values: Array, valid: Array, n_side: int) -> Array:
     rank = np.empty(n, np.int64)
     rank[order] = np.arange(n)
     eq = (values[..., :, None] == values[..., None, :]) & valid[..., None, :]
-    counts = jnp.sum(eq.astype(jnp.int32), axis=-1)
+    counts = jnp.sum(eq, axis=-1, dtype=jnp.int32)
     score = jnp.where(valid, counts * n + jnp.asarray(n - 1 - rank, jnp.int32), -1)
     k = jnp.argmax(score, axis=-1)
     return jnp.take_along_axis(values, k[..., None], axis=-1)[..., 0]
