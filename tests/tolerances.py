@@ -14,3 +14,28 @@ JAC_FWD_REV = 1e-10
 JAC_FINITE_DIFF_REL = 1e-5
 # Rigid transforms.
 POSE_F64 = 1e-12
+# Reprojection (LUTs and resampling kernels).
+LUT_PX_F64 = 1e-8  # float64 LUT coordinates vs the geometry typed in independently
+CV2_REMAP_F32 = 2e-6  # bilinear vs cv2.remap on float32 images in [0, 1], maps on the 1/32-px grid
+ANALYTIC_CUBE = 3e-3  # cube -> fisheye of a smooth function of the ray (64-px faces, incl. seams and corners)
+DEPTH_PLANE_REL_F32 = 2e-6  # range of a plane through the depth kernel (float32 faces)
+DEPTH_SPHERE_REL_F32 = 2e-4  # range of a sphere (inverse depth is not affine on it: 2nd order)
+# Embedded scene (float32 ray caster).
+SCENE_CLOSED_FORM_M = 1e-5  # ray/box, capsule, plane distances vs closed forms (float32, ~10 m)
+SCENE_PLANAR_DEPTH_REL = 1e-5  # planar depth = range * cos(angle to the axis)
+SCENE_ROAD_Z_M = 5e-3  # road pixels unprojected from encoded depth land on z = 0 (float32, 24-bit depth)
+SCENE_BOX_PAD_M = 5e-3  # actor pixels unprojected from depth lie inside the actor's box (+ this)
+CARLA_DEPTH_QUANTUM_M = 1000.0 / (256**3 - 1)  # one step of CARLA's 24-bit depth encoding
+# Oracle (cube -> fisheye pipeline vs direct fisheye rendering, small rig, 64-px faces).
+ORACLE_DEPTH_REL_MEDIAN = 0.01
+ORACLE_LABEL_AGREEMENT = 0.93
+ORACLE_RGB_PSNR_DB = 20.0
+# Lens models (Kannala-Brandt, UCM, EUCM, double sphere), float64.
+MODEL_PX_F64 = 1e-9  # projection vs an independent closed form / round trips, pixels
+MODEL_RAY_F64 = 1e-12  # unit-ray components after a round trip
+MODEL_PX_F32 = 2e-3  # float32 pixel -> ray -> pixel
+# Refitting and model conversion.
+CONVERT_EXACT_PX = 1e-7  # conversions that have an exact solution (WoodScape k2 = k4 = 0 <-> KB)
+REFIT_SIGMA_BOUND = 4.0  # recovered parameters within this many estimated standard deviations
+REFIT_RMS_NOISE_REL = 0.1  # fitted RMS within 10 % of the injected noise RMS
+REFIT_NOISELESS_PX = 1e-6  # noiseless synthetic correspondences are fitted exactly
