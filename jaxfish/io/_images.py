@@ -1,7 +1,8 @@
 """Image files through OpenImageIO (EXR float32/half, PNG 8/16 bit), dtype-preserving.
 
 Library traps handled here (CONVENTIONS §8): 2-D arrays are written as (H, W, 1); pixels are read
-with the file's own format (``oiio.UNKNOWN``) so uint8/uint16/half/float survive a round trip; a
+with the file's own format (``oiio.UNKNOWN``) so uint8/uint16/half/float survive a round trip;
+alpha stays unassociated (RGBA PNGs come back bit-exact, OpenImageIO would premultiply them); a
 missing or corrupt file raises `ImageError` naming it; writes are atomic.
 """
 
@@ -33,7 +34,9 @@ def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None 
     path = Path(path)
     if not path.is_file():
         raise ImageError(f"{path}: image file not found")
-    inp = oiio.ImageInput.open(str(path))
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # keep RGBA values as stored (no premultiplication)
+    inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
         raise ImageError(f"{path}: cannot open image ({oiio.geterror() or 'unknown format'})")
     try:
@@ -85,6 +88,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray) -> Path:
         spec = oiio.ImageSpec(w, h, c, _DTYPES[a.dtype])
         if ext == ".exr":
             spec.attribute("compression", "zip")
+        spec.attribute("oiio:UnassociatedAlpha", 1)  # the pixels are written as given
         if not out.open(str(tmp), spec):
             raise ImageError(f"{path}: cannot open for writing ({out.geterror()})")
         ok = out.write_image(a)

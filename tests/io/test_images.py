@@ -1,0 +1,89 @@
+"""Image files through OpenImageIO: dtype-preserving round trips, clear errors, atomic writes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxfish import ImageError
+from jaxfish.io import read_image, write_image
+
+RNG = np.random.default_rng(0)
+
+
+@pytest.mark.parametrize(
+    "ext, dtype, channels",
+    [(".png", np.uint8, 1), (".png", np.uint8, 3), (".png", np.uint8, 4), (".png", np.uint16, 1), (".png", np.uint16, 3),
+     (".exr", np.float32, 1), (".exr", np.float32, 3), (".exr", np.float16, 3), (".exr", np.float16, 4)],
+)
+def test_round_trip_is_bit_exact(tmp_path, ext, dtype, channels):
+    shape = (37, 53, channels)  # odd sizes on purpose
+    if np.issubdtype(dtype, np.integer):
+        a = RNG.integers(0, np.iinfo(dtype).max, shape, endpoint=True).astype(dtype)
+    else:
+        a = (RNG.normal(size=shape) * 100).astype(dtype)
+    path = write_image(tmp_path / f"x{ext}", a)
+    b = read_image(path)
+    assert b.dtype == dtype and b.shape == shape
+    np.testing.assert_array_equal(b, a)
+
+
+def test_two_dimensional_arrays_are_not_scrambled(tmp_path):
+    """OpenImageIO scrambles (H, W) writes (CONVENTIONS §8): they must come back intact."""
+    a = RNG.random((40, 30)).astype(np.float32)
+    b = read_image(write_image(tmp_path / "d.exr", a))
+    assert b.shape == (40, 30, 1)
+    np.testing.assert_array_equal(b[..., 0], a)
+    full = RNG.random((966, 1280)).astype(np.float32)  # full frame: the heap-corruption trap
+    np.testing.assert_array_equal(read_image(write_image(tmp_path / "f.exr", full))[..., 0], full)
+
+
+def test_bool_and_float64_are_converted(tmp_path):
+    m = RNG.random((5, 6)) > 0.5
+    np.testing.assert_array_equal(read_image(write_image(tmp_path / "m.png", m))[..., 0], m.astype(np.uint8) * 255)
+    d = RNG.random((5, 6))
+    b = read_image(write_image(tmp_path / "d.exr", d))
+    assert b.dtype == np.float32
+    np.testing.assert_array_equal(b[..., 0], d.astype(np.float32))
+
+
+def test_expect_shape(tmp_path):
+    p = write_image(tmp_path / "a.png", np.zeros((4, 5, 3), np.uint8))
+    assert read_image(p, expect_shape=(4, 5)).shape == (4, 5, 3)
+    with pytest.raises(ImageError, match=r"a\.png.*expected an image of shape \(5, 5\)"):
+        read_image(p, expect_shape=(5, 5))
+
+
+def test_missing_and_corrupt_files_name_the_file(tmp_path):
+    with pytest.raises(ImageError, match="nope.png: image file not found"):
+        read_image(tmp_path / "nope.png")
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
+    with pytest.raises(ImageError, match="bad.png"):
+        read_image(bad)
+    text = tmp_path / "text.exr"
+    text.write_text("not an image")
+    with pytest.raises(ImageError, match="text.exr"):
+        read_image(text)
+
+
+@pytest.mark.parametrize(
+    "name, pixels, match",
+    [("a.png", np.zeros((4, 4), np.float32), "PNG stores uint8/uint16"),
+     ("a.bmpx", np.zeros((4, 4), np.uint8), "unsupported image extension"),
+     ("a.exr", np.zeros((4, 4), np.int32), "unsupported pixel dtype"),
+     ("a.png", np.zeros((0, 4), np.uint8), "expected"),
+     ("a.png", np.zeros((2, 2, 2, 2), np.uint8), "expected")],
+)
+def test_write_errors_leave_nothing_behind(tmp_path, name, pixels, match):
+    with pytest.raises(ImageError, match=match):
+        write_image(tmp_path / name, pixels)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_replaces_atomically(tmp_path):
+    p = tmp_path / "x.png"
+    write_image(p, np.full((3, 3), 7, np.uint8))
+    write_image(p, np.full((3, 3), 9, np.uint8))
+    assert read_image(p).max() == 9
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["x.png"]
