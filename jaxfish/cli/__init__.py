@@ -3,5 +3,6 @@
 from __future__ import annotations
 
 from . import _demo as _demo  # noqa: F401  (registers `jaxfish demo`)
+from . import _synth as _synth  # noqa: F401  (registers `jaxfish synth`)
 from ._app import app as app
 from ._app import main as main

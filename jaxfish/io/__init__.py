@@ -9,6 +9,11 @@ from ._calibration_json import load_calibration as load_calibration
 from ._calibration_json import load_rig as load_rig
 from ._calibration_json import save_calibration as save_calibration
 from ._calibration_json import save_rig as save_rig
+from ._capture import CaptureError as CaptureError
+from ._capture import CaptureReader as CaptureReader
+from ._capture import synthesize_capture as synthesize_capture
+from ._capture import write_capture_header as write_capture_header
+from ._capture import write_frame as write_frame
 from ._carla import CARLA_MAX_DEPTH_M as CARLA_MAX_DEPTH_M
 from ._carla import DVS_EVENT_DTYPE as DVS_EVENT_DTYPE
 from ._carla import bgra_to_rgb as bgra_to_rgb

@@ -330,7 +330,7 @@ def simulate_radar(frame: StreetFrame, location_iso: tuple[float, float, float],
     pose = _sensor_to_world(frame, location_iso)
     d = pose.rotate(jnp.asarray(d_local, jnp.float32))
     o = jnp.broadcast_to(pose.translation, d.shape)
-    b = cast_rays(frame.scene, o, d, time=1.0, chunk_size=256)
+    b = cast_rays(frame.scene, o, d, time=1.0, chunk_size=config.chunk_size)
     scene = frame.scene
     p = b.point_world
     p_prev = scene.move_points(b.object_index, p, 1.0, 0.0)

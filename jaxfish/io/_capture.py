@@ -1,0 +1,378 @@
+"""The capture layout on disk: what every capture source (embedded scene or CARLA) writes and the
+dataset builder reads. The contract is ``docs/capture_layout.md``; this module writes and reads it.
+
+Images use CARLA's raw encodings (`jaxfish.io._carla`): BGRA RGB, 24-bit depth (planar metres),
+semantic tag in R, instance (0.9.14+ layout: R tag, G + 256 B actor id). Events, lidar and radar
+are ``.npy`` structured/float arrays in CARLA's raw dtypes; metadata is JSON. Writes are atomic.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._errors import JaxfishError
+from ..calibration import Calibration
+from ..scene import (
+    RADAR_DTYPE,
+    SEMANTIC_LIDAR_DTYPE,
+    Actor,
+    CameraCapture,
+    CameraImages,
+    CaptureConfig,
+    SensorMounts,
+    StreetFrame,
+    bev_camera,
+    front_camera,
+    generate_street,
+    sensor_mounts,
+    simulate_camera,
+    simulate_gnss,
+    simulate_imu,
+    simulate_lidar,
+    simulate_radar,
+    simulate_view,
+)
+from ._atomic import atomic_path, atomic_write_text
+from ._calibration_json import load_rig, save_rig
+from ._carla import (
+    DVS_EVENT_DTYPE,
+    bgra_to_rgb,
+    decode_depth,
+    decode_instance,
+    decode_semantic,
+    encode_depth,
+    encode_instance,
+    encode_semantic,
+    rgb_to_bgra,
+)
+from ._images import read_image, write_image
+
+#: Format name and version stored in ``capture.json``.
+CAPTURE_FORMAT = "jaxfish-capture"
+CAPTURE_VERSION = 1
+#: The two instants of every frame, as file-name suffixes: t-1 and t.
+INSTANTS = ("prev", "curr")
+
+
+class CaptureError(JaxfishError):
+    """A capture directory is missing a file or holds malformed metadata (names file and field)."""
+
+
+def frame_dir(root: str | os.PathLike, frame: int) -> Path:
+    """``ROOT/frames/{frame:06d}``."""
+    return Path(root) / "frames" / f"{int(frame):06d}"
+
+
+def _json(path: Path, obj: Any) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
+
+
+def _npy(path: Path, arr: np.ndarray) -> None:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.save(fh, np.ascontiguousarray(arr), allow_pickle=False)
+
+
+def _transform(loc, rot) -> dict[str, list[float]]:
+    return {"location": [float(v) for v in loc], "rotation": [float(v) for v in rot]}
+
+
+def actor_to_dict(actor: Actor) -> dict[str, Any]:
+    """JSON form of an `Actor` (CARLA units: metres, degrees, m/s, deg/s)."""
+    return {
+        "id": actor.id,
+        "type_id": actor.type_id,
+        "category": actor.category,
+        "semantic_tag": actor.semantic_tag,
+        "is_ego": actor.category == "ego",
+        "bounding_box": {"location": list(actor.bbox_location), "extent": list(actor.bbox_extent)},
+        "transform_prev": _transform(actor.location_prev, actor.rotation_prev),
+        "transform": _transform(actor.location, actor.rotation),
+        "velocity": list(actor.velocity),
+        "angular_velocity": list(actor.angular_velocity),
+        "displacement_m": actor.displacement_m,
+    }
+
+
+def write_images(directory: Path, images: CameraImages, instant: str) -> None:
+    """``rgb_, depth_, semantic_, instance_{instant}.png`` (CARLA BGRA encodings) in ``directory``."""
+    write_image(directory / f"rgb_{instant}.png", rgb_to_bgra(images.rgb))
+    write_image(directory / f"depth_{instant}.png", encode_depth(images.depth_m))
+    write_image(directory / f"semantic_{instant}.png", encode_semantic(images.semantic))
+    write_image(directory / f"instance_{instant}.png", encode_instance(images.semantic, images.actor_id))
+
+
+def read_images(directory: Path, instant: str = "curr") -> CameraImages:
+    """Read back what `write_images` wrote (RGB uint8, depth metres float32, tags, actor ids)."""
+    if instant not in INSTANTS:
+        raise CaptureError(f"{directory}: instant must be one of {INSTANTS}, got {instant!r}")
+    rgb = bgra_to_rgb(read_image(directory / f"rgb_{instant}.png"))
+    depth = decode_depth(read_image(directory / f"depth_{instant}.png"))
+    sem = decode_semantic(read_image(directory / f"semantic_{instant}.png"))
+    _, ids = decode_instance(read_image(directory / f"instance_{instant}.png"))
+    return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=ids.astype(np.int32))
+
+
+def _pose_dict(pose) -> dict[str, Any]:
+    return {"rotation_matrix": np.asarray(pose.rotation_matrix, np.float64).tolist(),
+            "translation": np.asarray(pose.translation, np.float64).tolist()}
+
+
+def write_capture_header(
+    root: str | os.PathLike,
+    rig: Mapping[str, Calibration],
+    config: CaptureConfig,
+    mounts: SensorMounts,
+    *,
+    seed: int | None,
+    source: str = "embedded",
+    dt_s: float = 0.1,
+) -> Path:
+    """Write ``capture.json`` (no frames yet), ``calibration/*.json`` and ``sensors.json``."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    save_rig(dict(rig), root / "calibration")
+    bev, front = bev_camera(config), front_camera(config)
+    carla = mounts.carla_transforms()
+    sensors = {
+        "bev": {"model": "orthographic", "width": bev.width, "height": bev.height,
+                "metres_per_pixel": float(bev.metres_per_pixel), "cx": float(bev.cx), "cy": float(bev.cy),
+                "camera_to_vehicle": _pose_dict(mounts.bev_camera_to_vehicle), "carla_transform": carla["bev"]},
+        "front": {"model": "pinhole", "width": front.width, "height": front.height, "fov_deg": config.front_fov_deg,
+                  "fx": float(front.fx), "fy": float(front.fy), "cx": float(front.cx), "cy": float(front.cy),
+                  "camera_to_vehicle": _pose_dict(mounts.front_camera_to_vehicle), "carla_transform": carla["front"]},
+        "lidar": {"channels": config.lidar_channels, "points_per_channel": config.lidar_points_per_channel,
+                  "upper_fov_deg": config.lidar_upper_fov_deg, "lower_fov_deg": config.lidar_lower_fov_deg,
+                  "range_m": config.lidar_range_m, "location_vehicle": list(mounts.lidar_location),
+                  "carla_transform": carla["lidar"]},
+        "radar": {"points": config.radar_points, "horizontal_fov_deg": config.radar_horizontal_fov_deg,
+                  "vertical_fov_deg": config.radar_vertical_fov_deg, "range_m": config.radar_range_m,
+                  "location_vehicle": list(mounts.radar_location), "carla_transform": carla["radar"]},
+        "imu": {"carla_transform": carla["imu"]},
+        "gnss": {"carla_transform": carla["gnss"], "geo_reference": {"latitude": 0.0, "longitude": 0.0, "altitude": 0.0}},
+        "dvs": {"positive_threshold": config.dvs_threshold, "negative_threshold": config.dvs_threshold,
+                "log_eps": config.dvs_log_eps, "substeps": config.dvs_substeps, "time_unit": "ns"},
+    }
+    _json(root / "sensors.json", sensors)
+    header = {
+        "format": CAPTURE_FORMAT, "version": CAPTURE_VERSION, "source": source, "seed": seed,
+        "carla_semantic_tags": "0.9.10", "dt_s": dt_s, "face_size": config.face_size,
+        "faces": list(config.faces), "cameras": list(rig), "frames": [],
+    }
+    _json(root / "capture.json", header)
+    return root
+
+
+def write_frame(
+    root: str | os.PathLike,
+    frame: StreetFrame,
+    *,
+    cameras: Mapping[str, CameraCapture],
+    views: Mapping[str, tuple[CameraImages, CameraImages, np.ndarray]],
+    lidar: np.ndarray,
+    semantic_lidar: np.ndarray,
+    radar: np.ndarray,
+    imu: Mapping[str, Any],
+    gnss: Mapping[str, Any],
+) -> Path:
+    """Write one frame (layout in ``docs/capture_layout.md``) and list it in ``capture.json``."""
+    root = Path(root)
+    d = frame_dir(root, frame.frame)
+    for cam, cap in cameras.items():
+        for face in cap.curr:
+            fd = d / "cameras" / cam / face
+            write_images(fd, cap.prev[face], "prev")
+            write_images(fd, cap.curr[face], "curr")
+            _npy(fd / "dvs.npy", np.asarray(cap.dvs[face]).astype(DVS_EVENT_DTYPE))
+    for name, (prev, curr, height) in views.items():
+        write_images(d / name, prev, "prev")
+        write_images(d / name, curr, "curr")
+        write_image(d / name / "height_curr.exr", np.asarray(height, np.float32))
+    _npy(d / "lidar.npy", np.asarray(lidar, np.float32))
+    _npy(d / "semantic_lidar.npy", np.asarray(semantic_lidar).astype(SEMANTIC_LIDAR_DTYPE))
+    _npy(d / "radar.npy", np.asarray(radar).astype(RADAR_DTYPE))
+    _json(d / "imu.json", dict(imu))
+    _json(d / "gnss.json", dict(gnss))
+    ego = frame.ego
+    _json(d / "ego.json", {
+        "frame": frame.frame, "timestamp_s": frame.timestamp_s, "timestamp_prev_s": frame.timestamp_s - frame.dt_s,
+        "id": ego.id, "transform_prev": _transform(ego.location_prev, ego.rotation_prev),
+        "transform": _transform(ego.location, ego.rotation),
+        "velocity": list(frame.ego_motion.velocity), "acceleration": list(frame.ego_motion.acceleration),
+        "angular_velocity": list(frame.ego_motion.angular_velocity),
+        "bounding_box": {"location": list(ego.bbox_location), "extent": list(ego.bbox_extent)},
+    })
+    _json(d / "actors.json", {"frame": frame.frame, "timestamp_s": frame.timestamp_s,
+                              "actors": [actor_to_dict(a) for a in frame.actors]})
+    header_path = root / "capture.json"
+    header = json.loads(header_path.read_text())
+    header["frames"] = sorted(set(header["frames"]) | {frame.frame})
+    _json(header_path, header)
+    return d
+
+
+def synthesize_capture(
+    root: str | os.PathLike,
+    rig: Mapping[str, Calibration],
+    *,
+    frames: int = 1,
+    seed: int = 0,
+    config: CaptureConfig | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Path:
+    """Render ``frames`` frames of the embedded street scene with ``rig`` and write the capture.
+
+    ``progress`` is called with a short description after every step (a camera, a view, ...).
+    """
+    config = config or CaptureConfig()
+    mounts = sensor_mounts(rig, config)
+    write_capture_header(root, rig, config, mounts, seed=seed)
+    bev, front = bev_camera(config), front_camera(config)
+    tick = progress or (lambda _msg: None)
+    for k in range(int(frames)):
+        frame = generate_street(seed, frame=k, rig=rig)
+        cams = {}
+        for name, calib in rig.items():
+            cams[name] = simulate_camera(frame, calib, config)
+            tick(f"frame {k}: camera {name}")
+        views = {"bev": simulate_view(frame, bev, mounts.bev_camera_to_vehicle, config)}
+        tick(f"frame {k}: bev")
+        views["front"] = simulate_view(frame, front, mounts.front_camera_to_vehicle, config)
+        tick(f"frame {k}: front")
+        lidar, sem = simulate_lidar(frame, mounts.lidar_location, config)
+        radar = simulate_radar(frame, mounts.radar_location, config)
+        write_frame(root, frame, cameras=cams, views=views, lidar=lidar, semantic_lidar=sem, radar=radar,
+                    imu=simulate_imu(frame), gnss=simulate_gnss(frame))
+        tick(f"frame {k}: lidar, radar, imu, gnss written")
+    return Path(root)
+
+
+def rig_names(directory: str | os.PathLike) -> tuple[str, ...]:
+    """Camera names of the ``*.json`` calibrations in a directory: the standard ones first, in
+    ``FV, MVL, MVR, RV`` order, then any others alphabetically."""
+    from ..calibration import CAMERA_NAMES
+
+    stems = {p.stem for p in Path(directory).glob("*.json")}
+    return tuple(n for n in CAMERA_NAMES if n in stems) + tuple(sorted(stems - set(CAMERA_NAMES)))
+
+
+def steps_per_frame(rig: Mapping[str, Calibration]) -> int:
+    """How many times `synthesize_capture` calls ``progress`` per frame."""
+    return len(rig) + 3
+
+
+class CaptureReader:
+    """Read a capture directory (any source) laid out as ``docs/capture_layout.md``."""
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+        header = self.root / "capture.json"
+        if not header.is_file():
+            raise CaptureError(f"{header}: not a capture directory (capture.json missing)")
+        try:
+            self.meta: dict[str, Any] = json.loads(header.read_text())
+        except json.JSONDecodeError as e:
+            raise CaptureError(f"{header}: invalid JSON ({e})") from e
+        for key in ("format", "version", "frames", "cameras", "faces"):
+            if key not in self.meta:
+                raise CaptureError(f"{header}: field '{key}' missing")
+        if self.meta["format"] != CAPTURE_FORMAT:
+            raise CaptureError(f"{header}: field 'format' is {self.meta['format']!r}, expected {CAPTURE_FORMAT!r}")
+
+    @property
+    def frames(self) -> list[int]:
+        """Frame numbers written so far."""
+        return list(self.meta["frames"])
+
+    @property
+    def cameras(self) -> list[str]:
+        """Fisheye camera names of the rig."""
+        return list(self.meta["cameras"])
+
+    @property
+    def faces(self) -> list[str]:
+        """Cube faces rendered per camera, in `CubeRig` order."""
+        return list(self.meta["faces"])
+
+    def rig(self) -> dict[str, Calibration]:
+        """The calibration of every fisheye camera (``calibration/*.json``)."""
+        return load_rig(self.root / "calibration", names=tuple(self.cameras))
+
+    def sensors(self) -> dict[str, Any]:
+        """``sensors.json``: BEV, front, lidar, radar, IMU, GNSS and DVS settings and mounts."""
+        return self._read_json(self.root / "sensors.json")
+
+    def _read_json(self, path: Path) -> Any:
+        if not path.is_file():
+            raise CaptureError(f"{path}: file missing")
+        try:
+            return json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise CaptureError(f"{path}: invalid JSON ({e})") from e
+
+    def _frame(self, frame: int) -> Path:
+        d = frame_dir(self.root, frame)
+        if not d.is_dir():
+            raise CaptureError(f"{d}: frame {frame} missing from the capture")
+        return d
+
+    def ego(self, frame: int) -> dict[str, Any]:
+        """``ego.json`` of a frame (CARLA transforms at t-1 and t, velocity, acceleration)."""
+        return self._read_json(self._frame(frame) / "ego.json")
+
+    def actors(self, frame: int) -> list[dict[str, Any]]:
+        """The actors of a frame (``actors.json``)."""
+        return self._read_json(self._frame(frame) / "actors.json")["actors"]
+
+    def face(self, frame: int, camera: str, face: str, instant: str = "curr") -> CameraImages:
+        """One cube face's images at ``"prev"`` (t-1) or ``"curr"`` (t)."""
+        return read_images(self._frame(frame) / "cameras" / camera / face, instant)
+
+    def faces_stack(self, frame: int, camera: str, instant: str = "curr") -> CameraImages:
+        """All faces of a camera stacked on a leading face axis (the `CubeRig` order of `faces`)."""
+        imgs = [self.face(frame, camera, f, instant) for f in self.faces]
+        return CameraImages(*(np.stack([getattr(i, k) for i in imgs]) for k in ("rgb", "depth_m", "semantic", "actor_id")))
+
+    def dvs(self, frame: int, camera: str, face: str) -> np.ndarray:
+        """DVS events of a face between t-1 and t (`DVS_EVENT_DTYPE`, t in ns)."""
+        return self._npy(self._frame(frame) / "cameras" / camera / face / "dvs.npy")
+
+    def view(self, frame: int, name: str, instant: str = "curr") -> CameraImages:
+        """The ``"bev"`` or ``"front"`` camera's images."""
+        return read_images(self._frame(frame) / name, instant)
+
+    def height(self, frame: int, name: str = "bev") -> np.ndarray:
+        """Height map (metres above the ground, float32) of the ``"bev"`` or ``"front"`` view at t."""
+        return read_image(self._frame(frame) / name / "height_curr.exr")[..., 0]
+
+    def _npy(self, path: Path) -> np.ndarray:
+        if not path.is_file():
+            raise CaptureError(f"{path}: file missing")
+        return np.load(path, allow_pickle=False)
+
+    def lidar(self, frame: int) -> np.ndarray:
+        """Lidar points ``(N, 4)`` float32 ``x, y, z, intensity`` (sensor frame, Unreal axes)."""
+        return self._npy(self._frame(frame) / "lidar.npy")
+
+    def semantic_lidar(self, frame: int) -> np.ndarray:
+        """Semantic lidar points (CARLA's ``SemanticLidarDetection`` dtype)."""
+        return self._npy(self._frame(frame) / "semantic_lidar.npy")
+
+    def radar(self, frame: int) -> np.ndarray:
+        """Radar detections (``velocity, azimuth, altitude, depth``)."""
+        return self._npy(self._frame(frame) / "radar.npy")
+
+    def imu(self, frame: int) -> dict[str, Any]:
+        """IMU reading at t."""
+        return self._read_json(self._frame(frame) / "imu.json")
+
+    def gnss(self, frame: int) -> dict[str, Any]:
+        """GNSS fix at t."""
+        return self._read_json(self._frame(frame) / "gnss.json")
+
+

@@ -1,0 +1,91 @@
+"""The capture layout: write a tiny capture, read every file back, and check it against the scene."""
+
+from __future__ import annotations
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfish as jf
+from jaxfish.io import DVS_EVENT_DTYPE, CaptureError, CaptureReader, synthesize_capture
+from jaxfish.scene import (
+    RADAR_DTYPE,
+    SEMANTIC_LIDAR_DTYPE,
+    CaptureConfig,
+    generate_street,
+    render_cube_faces,
+)
+from tests.tolerances import CARLA_DEPTH_QUANTUM_M
+
+FACE = 32
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    rig = {k: v.resize(96, 72).astype(jnp.float32) for k, v in jf.default_rig().items() if k in ("FV", "MVL")}
+    config = CaptureConfig(face_size=FACE, bev_size=32, front_width=32, front_height=24, lidar_channels=4,
+                           lidar_points_per_channel=64, radar_points=32, dvs_substeps=2)
+    root = tmp_path_factory.mktemp("capture")
+    steps = []
+    synthesize_capture(root, rig, frames=2, seed=5, config=config, progress=steps.append)
+    return root, rig, config, steps
+
+
+def test_layout_and_header(capture):
+    root, rig, config, steps = capture
+    header = json.loads((root / "capture.json").read_text())
+    assert header["frames"] == [0, 1] and header["cameras"] == ["FV", "MVL"] and header["version"] == 1
+    assert header["carla_semantic_tags"] == "0.9.10" and header["faces"] == list(config.faces)
+    assert len(steps) == 2 * (len(rig) + 3)
+    for rel in ("calibration/FV.json", "calibration/MVL.json", "sensors.json", "frames/000001/ego.json",
+                "frames/000000/actors.json", "frames/000000/cameras/MVL/top/rgb_prev.png",
+                "frames/000000/cameras/FV/bottom/dvs.npy", "frames/000000/bev/height_curr.exr",
+                "frames/000000/front/instance_curr.png", "frames/000000/lidar.npy", "frames/000000/radar.npy",
+                "frames/000000/semantic_lidar.npy", "frames/000000/imu.json", "frames/000000/gnss.json"):
+        assert (root / rel).is_file(), rel
+
+
+def test_read_back_matches_the_scene(capture):
+    root, rig, config, _ = capture
+    reader = CaptureReader(root)
+    assert reader.frames == [0, 1] and set(reader.rig()) == {"FV", "MVL"}
+    frame = generate_street(5, frame=1, rig=reader.rig())
+    direct = render_cube_faces(frame, rig["FV"], FACE, time=1.0)
+    for face in config.faces:
+        img = reader.face(1, "FV", face, "curr")
+        b = direct[face]
+        np.testing.assert_array_equal(img.semantic, np.asarray(b.semantic))
+        np.testing.assert_array_equal(img.actor_id, np.asarray(b.actor_id))
+        assert np.max(np.abs(img.depth_m - np.asarray(b.depth_m))) <= CARLA_DEPTH_QUANTUM_M + 1e-6 * 1000
+        assert img.rgb.dtype == np.uint8 and img.rgb.shape == (FACE, FACE, 3)
+    stack = reader.faces_stack(1, "FV")
+    assert stack.depth_m.shape == (len(config.faces), FACE, FACE)
+    actors = reader.actors(1)
+    assert [a["id"] for a in actors] == [a.id for a in frame.actors]
+    np.testing.assert_allclose(actors[3]["transform"]["location"], frame.actors[3].location)
+    np.testing.assert_allclose(reader.ego(1)["transform_prev"]["location"], frame.ego.location_prev)
+    assert reader.dvs(0, "FV", "front").dtype == DVS_EVENT_DTYPE
+    assert reader.semantic_lidar(0).dtype == SEMANTIC_LIDAR_DTYPE and reader.radar(0).dtype == RADAR_DTYPE
+    lidar = reader.lidar(0)
+    assert lidar.dtype == np.float32 and lidar.shape[1] == 4
+    bev = reader.view(0, "bev")
+    assert bev.rgb.shape == (32, 32, 3) and reader.height(0).shape == (32, 32)
+    assert np.all(reader.height(0) >= 0.0) and reader.view(0, "front", "prev").rgb.shape == (24, 32, 3)
+    assert set(reader.imu(0)) >= {"accelerometer", "gyroscope", "compass"} and "latitude" in reader.gnss(0)
+    assert reader.sensors()["bev"]["metres_per_pixel"] == pytest.approx(config.bev_metres_per_pixel)
+
+
+def test_reader_errors_name_the_file(tmp_path, capture):
+    with pytest.raises(CaptureError, match="capture.json"):
+        CaptureReader(tmp_path)
+    root, *_ = capture
+    reader = CaptureReader(root)
+    with pytest.raises(CaptureError, match="frame 7"):
+        reader.actors(7)
+    (tmp_path / "capture.json").write_text('{"format": "other", "version": 1, "frames": [], "cameras": [], "faces": []}')
+    with pytest.raises(CaptureError, match="format"):
+        CaptureReader(tmp_path)
+    with pytest.raises(CaptureError, match="instant"):
+        reader.face(0, "FV", "front", "next")

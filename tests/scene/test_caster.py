@@ -1,0 +1,112 @@
+"""The caster's geometry against closed forms, run eager / jit / vmap."""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfish.io import decode_depth, encode_depth
+from jaxfish.scene import FAR_M, cast_rays, ray_box_distance, ray_capsule_distance, ray_ground_distance
+from tests.helpers import three_ways
+from tests.tolerances import CARLA_DEPTH_QUANTUM_M, SCENE_CLOSED_FORM_M, SCENE_PLANAR_DEPTH_REL
+
+F = np.float32
+
+
+def _unit(v):
+    v = np.asarray(v, np.float64)
+    return (v / np.linalg.norm(v, axis=-1, keepdims=True)).astype(F)
+
+
+def test_ray_box_closed_form():
+    h = np.array([[1.0, 2.0, 3.0]] * 4, F)
+    o = np.array([[-10.0, 0.5, 0.5], [0.5, 7.0, -1.0], [-10.0, 5.0, 0.0], [0.0, 0.0, 0.0]], F)
+    d = _unit([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    # entry at x = -1 (9 m), y = 2 (5 m), a miss, and a ray starting inside (not an entry: inf)
+    expected = np.array([9.0, 5.0, np.inf, np.inf])
+    for got in three_ways(lambda o, d, h: ray_box_distance(jnp.asarray(o), jnp.asarray(d), jnp.asarray(h)), o, d, h):
+        np.testing.assert_allclose(got, expected, atol=SCENE_CLOSED_FORM_M)
+
+
+def test_ray_box_oblique_hits_the_entered_face():
+    h = np.array([1.0, 1.0, 1.0], F)
+    o = np.array([-4.0, -3.0, 0.2], F)
+    d = _unit([4.0, 3.0, 0.0])  # towards the centre: enters the x = -1 face at y = -0.75
+    t = float(ray_box_distance(jnp.asarray(o), jnp.asarray(d), jnp.asarray(h)))
+    np.testing.assert_allclose(t, 3.0 / 0.8, atol=SCENE_CLOSED_FORM_M)
+
+
+def test_ray_capsule_closed_form():
+    hl = np.full(5, 1.0, F)
+    r = np.full(5, 0.5, F)
+    o = np.array([[-5.0, 0.0, 0.0], [0.0, 0.0, 10.0], [-5.0, 0.0, 1.3], [-5.0, 0.0, 1.6], [0.3, 0.0, -8.0]], F)
+    d = _unit([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    expected = np.array([
+        4.5,  # side of the cylinder
+        8.5,  # straight down onto the top sphere (a top view: parallel to the axis)
+        5.0 - math.sqrt(0.25 - 0.09),  # the top sphere at height 0.3 above the segment end
+        np.inf,  # above the capsule
+        8.0 - 1.0 - math.sqrt(0.25 - 0.09),  # straight up into the bottom sphere, off-axis
+    ])
+    fn = lambda o, d, hl, r: ray_capsule_distance(jnp.asarray(o), jnp.asarray(d), jnp.asarray(hl), jnp.asarray(r))  # noqa: E731
+    for got in three_ways(fn, o, d, hl, r):
+        np.testing.assert_allclose(got, expected, atol=SCENE_CLOSED_FORM_M)
+
+
+def test_ray_ground_closed_form():
+    o = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 2.0], [3.0, 1.0, 50.0]], F)
+    d = _unit([[1.0, 0.0, -1.0], [1.0, 0.0, 0.5], [0.0, 0.0, -1.0]])
+    expected = np.array([2 * math.sqrt(2.0), np.inf, 50.0])
+    for got in three_ways(lambda o, d: ray_ground_distance(jnp.asarray(o), jnp.asarray(d)), o, d):
+        np.testing.assert_allclose(got, expected, rtol=1e-6)
+
+
+def test_cast_rays_hits_the_ground_at_the_known_point(street):
+    # straight down from 30 m above the road far ahead of everything: the road at (x, y, 0)
+    o = np.array([[500.0, 0.5, 30.0], [500.0, 3.0, 30.0]], F)
+    d = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]], F)
+    b = cast_rays(street.scene, o, d)
+    np.testing.assert_allclose(np.asarray(b.range_m), [30.0, 30.0], atol=SCENE_CLOSED_FORM_M)
+    np.testing.assert_allclose(np.asarray(b.point_world)[:, 2], 0.0, atol=SCENE_CLOSED_FORM_M)
+    np.testing.assert_array_equal(np.asarray(b.semantic), [7, 7])
+    np.testing.assert_allclose(np.asarray(b.normal_world), [[0, 0, 1]] * 2)
+    up = cast_rays(street.scene, o, -d)
+    assert not np.any(np.asarray(up.hit)) and np.all(np.asarray(up.semantic) == 13)
+    np.testing.assert_array_equal(np.asarray(up.range_m), FAR_M)
+
+
+def test_planar_depth_is_range_times_cosine(faces_t):
+    from jaxfish.reprojection import CubeRig
+
+    face = CubeRig(48).face
+    rays, _ = face.unproject(face.pixel_grid(jnp.float64))
+    cos = np.asarray(rays[..., 2])
+    for faces in faces_t.values():
+        for b in faces.values():
+            hit = np.asarray(b.hit)
+            np.testing.assert_allclose(np.asarray(b.depth_m)[hit], (np.asarray(b.range_m) * cos)[hit],
+                                       rtol=SCENE_PLANAR_DEPTH_REL)
+            assert np.all(np.asarray(b.depth_m)[~hit] == FAR_M)
+
+
+def test_encoded_depth_round_trip(faces_t):
+    b = faces_t["FV"]["bottom"]
+    depth = np.asarray(b.depth_m, np.float64)
+    back = decode_depth(encode_depth(depth))
+    # half a quantum, plus the float32 rounding of the decoded metres
+    assert np.all(np.abs(back - depth) <= 0.5 * CARLA_DEPTH_QUANTUM_M + 1e-7 * depth)
+    # the CARLA formula, written out: metres = 1000 (R + 256 G + 256² B) / (256³ - 1)
+    bgra = encode_depth(depth).astype(np.float64)
+    formula = 1000.0 * (bgra[..., 2] + 256 * bgra[..., 1] + 65536 * bgra[..., 0]) / (256**3 - 1)
+    np.testing.assert_allclose(formula, back, atol=1e-6)
+
+
+def test_buffers_are_finite_everywhere(faces_t):
+    for faces in faces_t.values():
+        for b in faces.values():
+            for field in ("range_m", "depth_m", "rgb", "point_world", "normal_world"):
+                assert np.all(np.isfinite(np.asarray(getattr(b, field)))), field
+            rgb = np.asarray(b.rgb)
+            assert rgb.min() >= 0.0 and rgb.max() <= 1.0
