@@ -1,0 +1,265 @@
+"""``jaxfish cube2fisheye`` and ``jaxfish reproject``: LUT-based reprojection of image files.
+
+Outputs follow their extension: ``.png`` (uint8 / uint16 values as read), ``.exr`` (float32; float
+input stays float, integer values are stored as float32 numbers) or ``.npy`` (the array as
+computed). Pixels outside the lens domain (or not seen by the source) are 0. Depth is written as
+float32 Euclidean range in metres along each output ray (sky/far stays 1000), so ``.png`` is refused
+for depth. Every error is one message naming the file, a non-zero exit, and no output file.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import typer
+
+from ._app import app, console, fail
+
+_KINDS = ("rgb", "label", "depth")
+_OUT_EXTS = (".png", ".exr", ".npy")
+_FACE_EXTS = (".png", ".exr")
+
+
+def _check_options(kind: str, out: Path, supersample: int) -> None:
+    if kind not in _KINDS:
+        raise fail(f"--kind must be one of {', '.join(_KINDS)}, got {kind!r}")
+    ext = out.suffix.lower()
+    if ext not in _OUT_EXTS:
+        raise fail(f"{out}: unsupported output extension {ext!r} (use .png, .exr or .npy)")
+    if kind == "depth" and ext == ".png":
+        raise fail(f"{out}: depth is float metres (1000 = sky); write .exr or .npy")
+    if supersample < 1 or supersample > 16:
+        raise fail(f"--supersample must be in 1..16, got {supersample}")
+
+
+def _prepare(images, kind: str, names: list[str]):
+    """Stacked source array for a kind, from per-face (H, W, C) arrays; raises with the file name."""
+    import numpy as np
+
+    from .._errors import ImageError
+
+    dtypes = {a.dtype for a in images}
+    if len(dtypes) != 1:
+        raise ImageError(f"{names[0]}: all inputs must share one pixel type, got {sorted(str(d) for d in dtypes)}")
+    x = np.stack(images)
+    if kind == "label":
+        if not np.issubdtype(x.dtype, np.integer):
+            raise ImageError(f"{names[0]}: label images must be integer (index PNG), got {x.dtype}")
+        return x[..., 0]  # single-channel index, or CARLA's semantic tag in the red channel
+    if kind == "depth":
+        if not np.issubdtype(x.dtype, np.floating) or x.shape[-1] != 1:
+            raise ImageError(
+                f"{names[0]}: depth must be a single-channel float EXR in metres, got {x.dtype} with {x.shape[-1]} channels"
+            )
+        return x[..., 0].astype(np.float32)
+    return x
+
+
+def _resample(x, lut, kind: str, *, planar: bool):
+    import jax.numpy as jnp
+    import numpy as np
+
+    fns = _functions()
+    fn = fns["rgb"] if kind == "rgb" else fns["label"] if kind == "label" else fns["depth_planar" if planar else "depth_range"]
+    values, _ = fn(jnp.asarray(x), lut)
+    return np.asarray(values)
+
+
+def _jitted():
+    import jax
+
+    from ..reprojection import build_lut, resample_bilinear, resample_depth, resample_nearest
+
+    return {
+        "lut": jax.jit(build_lut, static_argnames=("supersample", "dtype")),
+        "rgb": jax.jit(resample_bilinear),
+        "label": jax.jit(resample_nearest),
+        "depth_planar": jax.jit(lambda d, lut: resample_depth(d, lut, planar=True)),
+        "depth_range": jax.jit(lambda d, lut: resample_depth(d, lut, planar=False)),
+    }
+
+
+_JIT: dict = {}
+
+
+def _functions() -> dict:
+    if not _JIT:
+        _JIT.update(_jitted())
+    return _JIT
+
+
+def _write(out: Path, values, kind: str) -> None:
+    import numpy as np
+
+    from .._errors import ImageError
+    from ..io import atomic_path, write_image
+
+    ext = out.suffix.lower()
+    if ext == ".npy":
+        with atomic_path(out) as tmp:
+            with open(tmp, "wb") as f:
+                np.save(f, values)
+        return
+    if ext == ".exr":
+        write_image(out, values.astype(np.float32) if values.dtype != np.float16 else values)
+        return
+    if values.dtype not in (np.uint8, np.uint16):
+        raise ImageError(f"{out}: PNG stores uint8/uint16, the {kind} result is {values.dtype} (write .exr or .npy)")
+    write_image(out, values)
+
+
+def _run(body) -> None:
+    from .._errors import JaxfishError
+
+    try:
+        body()
+    except (JaxfishError, FileNotFoundError, IsADirectoryError, PermissionError) as e:
+        raise fail(str(e)) from e
+
+
+@app.command("cube2fisheye")
+def cube2fisheye(
+    faces: Path = typer.Option(..., "--faces", help="Directory holding front, left, right, top, bottom (.png or .exr, all S x S); back is optional."),
+    calibration: Path = typer.Option(..., "--calibration", "-c", help="WoodScape/SynWoodScape calibration JSON of the fisheye."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output file: .png, .exr or .npy."),
+    kind: str = typer.Option("rgb", "--kind", help="rgb (bilinear), label (nearest / majority) or depth (planar z -> range)."),
+    supersample: int = typer.Option(1, "--supersample", help="N x N rays per fisheye pixel (rgb: mean, label: majority, depth: centre)."),
+    errata: bool = typer.Option(False, "--errata", help="Apply the SynWoodScape calibration errata when loading."),
+) -> None:
+    """Make a fisheye image (rgb, label or depth) from CARLA's perspective cube faces."""
+    _check_options(kind, out, supersample)
+
+    def body():
+        import jax.numpy as jnp
+
+        from .._errors import ImageError
+        from ..io import load_calibration, read_image
+        from ..reprojection import FIVE_FACES, CubeRig
+
+        if not faces.is_dir():
+            raise FileNotFoundError(f"{faces}: faces directory not found")
+
+        def find(name):
+            hits = [faces / f"{name}{e}" for e in _FACE_EXTS if (faces / f"{name}{e}").is_file()]
+            if len(hits) > 1:
+                raise ImageError(f"{faces}: face {name!r} exists as both {hits[0].name} and {hits[1].name}")
+            return hits[0] if hits else None
+
+        paths = {name: find(name) for name in FIVE_FACES + ("back",)}
+        missing = [n for n in FIVE_FACES if paths[n] is None]
+        if missing:
+            raise ImageError(
+                f"{faces}: missing cube face{'s' if len(missing) > 1 else ''} {', '.join(missing)} "
+                f"(expected {', '.join(n + '.png|.exr' for n in missing)})"
+            )
+        names = FIVE_FACES + (("back",) if paths["back"] is not None else ())
+        calib = load_calibration(calibration, apply_errata=errata)
+        images, size = [], None
+        for name in names:
+            img = read_image(paths[name])
+            if img.shape[0] != img.shape[1]:
+                raise ImageError(f"{paths[name]}: cube faces must be square, got {img.shape[1]}x{img.shape[0]}")
+            if size is not None and img.shape[0] != size[1]:
+                raise ImageError(
+                    f"{paths[name]}: face size {img.shape[0]}x{img.shape[0]} differs from {size[0]} ({size[1]}x{size[1]})"
+                )
+            size = size or (paths[name].name, img.shape[0])
+            images.append(img)
+        x = _prepare(images, kind, [str(paths[n]) for n in names])
+        fns = _functions()
+        rig = CubeRig(size[1], faces=names, dtype=jnp.float32)
+        lut = fns["lut"](rig, calib.camera.astype(jnp.float32), supersample=supersample, dtype=jnp.float32)
+        values = _resample(x, lut, kind, planar=True)
+        _write(out, values, kind)
+        console.print(
+            f"{calib.name}: {len(names)} faces of {size[1]} px -> {calib.camera.width}x{calib.camera.height} {kind} "
+            f"({supersample}x{supersample} samples per pixel), wrote {out}",
+            highlight=False,
+        )
+
+    _run(body)
+
+
+def _rotation(yaw_deg: float, pitch_deg: float, roll_deg: float):
+    """Target -> source rotation of a view turned by yaw (right +), pitch (up +), roll (clockwise +)."""
+    import numpy as np
+
+    y, p, r = (math.radians(a) for a in (yaw_deg, pitch_deg, roll_deg))
+    ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
+    rx = np.array([[1, 0, 0], [0, math.cos(p), -math.sin(p)], [0, math.sin(p), math.cos(p)]])
+    rz = np.array([[math.cos(r), -math.sin(r), 0], [math.sin(r), math.cos(r), 0], [0, 0, 1]])
+    return ry @ rx @ rz
+
+
+@app.command("reproject")
+def reproject(
+    image: Path = typer.Argument(..., help="Fisheye image (.png/.exr) taken with the calibration's camera."),
+    calibration: Path = typer.Option(..., "--calibration", "-c", help="Calibration JSON of the input fisheye."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output file: .png, .exr or .npy."),
+    to: str = typer.Option("pinhole", "--to", help="Target model: pinhole, equirectangular, cylindrical or fisheye."),
+    width: int | None = typer.Option(None, "--width", help="Target width (default: the input's)."),
+    height: int | None = typer.Option(None, "--height", help="Target height (default: the input's)."),
+    fov: float | None = typer.Option(None, "--fov", help="Horizontal field of view in degrees (pinhole 90, panoramas 180)."),
+    yaw: float = typer.Option(0.0, "--yaw", help="Turn the target view right by this many degrees."),
+    pitch: float = typer.Option(0.0, "--pitch", help="Turn the target view up by this many degrees."),
+    roll: float = typer.Option(0.0, "--roll", help="Roll the target view clockwise by this many degrees."),
+    target_calibration: Path | None = typer.Option(None, "--target-calibration", help="Calibration JSON of the target (--to fisheye)."),
+    kind: str = typer.Option("rgb", "--kind", help="rgb (bilinear), label (nearest) or depth (range in metres, kept as range)."),
+    supersample: int = typer.Option(1, "--supersample", help="N x N rays per output pixel."),
+) -> None:
+    """Reproject a fisheye image to another camera model (e.g. rectify it to a pinhole view)."""
+    _check_options(kind, out, supersample)
+    if to not in ("pinhole", "equirectangular", "cylindrical", "fisheye"):
+        raise fail(f"--to must be pinhole, equirectangular, cylindrical or fisheye, got {to!r}")
+    if to == "fisheye" and target_calibration is None:
+        raise fail("--to fisheye needs --target-calibration")
+
+    def body():
+        import jax.numpy as jnp
+
+        from .. import Cylindrical, Equirectangular, Pinhole
+        from .._errors import ImageError
+        from ..io import load_calibration, read_image
+
+        calib = load_calibration(calibration)
+        cam = calib.camera.astype(jnp.float32)
+        img = read_image(image)
+        if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
+            raise ImageError(
+                f"{image}: image is {img.shape[1]}x{img.shape[0]} but {calibration} describes {cam.width}x{cam.height} "
+                "(resize the calibration with Calibration.resize)"
+            )
+        w = width or cam.width
+        h = height or cam.height
+        if w <= 0 or h <= 0:
+            raise ImageError(f"--width/--height must be positive, got {w}x{h}")
+        if to == "pinhole":
+            f_deg = 90.0 if fov is None else fov
+            if not 0 < f_deg < 180:
+                raise ImageError(f"--fov must be in (0, 180) for a pinhole, got {f_deg}")
+            target = Pinhole.from_fov(w, h, f_deg, dtype=jnp.float32)
+        elif to in ("equirectangular", "cylindrical"):
+            f_rad = math.radians(180.0 if fov is None else fov)
+            if not 0 < f_rad <= 2 * math.pi:
+                raise ImageError(f"--fov must be in (0, 360] for a panorama, got {fov}")
+            lon = (-f_rad / 2, f_rad / 2)
+            if to == "equirectangular":
+                half_lat = min(f_rad * h / w / 2, math.pi / 2)
+                target = Equirectangular(width=w, height=h, lon_range=lon, lat_range=(-half_lat, half_lat), dtype=jnp.float32)
+            else:
+                target = Cylindrical(width=w, height=h, lon_range=lon, dtype=jnp.float32)
+        else:
+            target = load_calibration(target_calibration).camera.astype(jnp.float32)
+            if width or height:
+                target = target.__class__(target.k, width=w, height=h, cx_offset=target.cx_offset,
+                                          cy_offset=target.cy_offset, aspect_ratio=target.aspect_ratio)
+        x = _prepare([img], kind, [str(image)])
+        fns = _functions()
+        r = jnp.asarray(_rotation(yaw, pitch, roll), jnp.float32)
+        lut = fns["lut"](cam, target, target_to_source=r, supersample=supersample, dtype=jnp.float32)
+        values = _resample(x, lut, kind, planar=False)
+        _write(out, values, kind)
+        console.print(f"{image} ({calib.name}) -> {to} {w}x{h} {kind}, wrote {out}", highlight=False)
+
+    _run(body)
