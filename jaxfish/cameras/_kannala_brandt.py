@@ -61,7 +61,9 @@ def dtheta_d_dtheta(k: Float[Array, "4"], theta: Float[Array, "*batch"]) -> Floa
     return 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * (9 * k[3]))))
 
 
+@jax.jit
 def _kb_theta_max(k: Float[Array, "4"]) -> Float[Array, ""]:
+    # Jitted once per dtype: eager calls would otherwise dispatch the bisection loop op by op.
     return first_increasing_limit(dtheta_d_dtheta, k, k.dtype)
 
 
@@ -70,6 +72,7 @@ def _residual(theta, args):
     return theta_d_of_theta(k, theta) - theta_d  # radians already
 
 
+@jax.jit
 def solve_theta_kb(
     k: Float[Array, "4"], theta_d: Float[Array, "*batch"], theta_max: Float[Array, ""]
 ) -> tuple[Float[Array, "*batch"], Bool[Array, "*batch"]]:
