@@ -139,14 +139,25 @@ def cube_face_size(camera: WoodScapeFisheye, *, multiple: int = 32, oversample: 
     """
     cam = camera
     h, w = camera.height, camera.width
-    # Incidence angles reached inside the image: the corners bound them.
-    corners = jnp.asarray([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]], dtype=cam.k.dtype)
-    rays, valid = cam.unproject(corners)
-    cos_t = jnp.where(valid, rays[..., 2], -1.0)
-    theta_img = float(jnp.arccos(jnp.clip(jnp.min(cos_t), -1.0, 1.0)))
-    theta_img = min(theta_img, float(cam.theta_max()))
-    thetas = np.linspace(1e-3, theta_img, 2048)
     k = np.asarray(cam.k, dtype=np.float64)
+    # Incidence angles reached inside the image: the corners bound them. Plain float64 NumPy (a
+    # monotone bisection on rho), so this host-side helper costs no JAX tracing or compilation.
+    cx = w / 2 + float(cam.cx_offset) - 0.5
+    cy = h / 2 + float(cam.cy_offset) - 0.5
+    a_r = float(cam.aspect_ratio)
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    rho_img = float(np.max(np.hypot(corners[:, 0] - cx, (corners[:, 1] - cy) / a_r)))
+    grid = np.linspace(0.0, math.pi, 4097)
+    drho_grid = k[0] + grid * (2 * k[1] + grid * (3 * k[2] + grid * 4 * k[3]))
+    stationary = np.nonzero(drho_grid <= 0)[0]
+    theta_hi = grid[stationary[0]] if stationary.size else math.pi
+    lo, hi = 0.0, theta_hi
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        rho_mid = mid * (k[0] + mid * (k[1] + mid * (k[2] + mid * k[3])))
+        lo, hi = (mid, hi) if rho_mid < rho_img else (lo, mid)
+    theta_img = hi
+    thetas = np.linspace(1e-3, theta_img, 2048)
     drho = k[0] + thetas * (2 * k[1] + thetas * (3 * k[2] + thetas * 4 * k[3]))
     rho = thetas * (k[0] + thetas * (k[1] + thetas * (k[2] + thetas * k[3])))
     a = float(np.max(np.asarray(cam.aspect_ratio)))
