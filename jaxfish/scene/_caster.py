@@ -8,9 +8,12 @@ camera model's frame (OpenCV) to world coordinates (it has determinant -1: it ch
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..cameras import AbstractCamera
@@ -220,31 +223,30 @@ def _slab(o, d, h):
     return jnp.minimum(t1, t2), jnp.maximum(t1, t2)
 
 
-def _box_t(o, d, posed: _Posed, scene: Scene):
+def _box_t(o, d, center, cos, sin, h, active):
     """(C, B) entry distances, computed per component (no minor-axis stacking: it vectorises)."""
-    c, s = posed.box_cos[None], posed.box_sin[None]
-    rx = o[:, 0:1] - posed.box_center[None, :, 0]
-    ry = o[:, 1:2] - posed.box_center[None, :, 1]
-    rz = o[:, 2:3] - posed.box_center[None, :, 2]
+    c, s = cos[None], sin[None]
+    rx = o[:, 0:1] - center[None, :, 0]
+    ry = o[:, 1:2] - center[None, :, 1]
+    rz = o[:, 2:3] - center[None, :, 2]
     ox, oy = c * rx + s * ry, -s * rx + c * ry
     dx, dy = c * d[:, 0:1] + s * d[:, 1:2], -s * d[:, 0:1] + c * d[:, 1:2]
-    h = scene.box_half_extent
     ax, bx = _slab(ox, dx, h[None, :, 0])
     ay, by = _slab(oy, dy, h[None, :, 1])
     az, bz = _slab(rz, jnp.broadcast_to(d[:, 2:3], rz.shape), h[None, :, 2])
     t_near = jnp.maximum(jnp.maximum(ax, ay), az)
     t_far = jnp.minimum(jnp.minimum(bx, by), bz)
-    ok = (t_near <= t_far) & (t_near > _T_MIN) & scene.box_active[None]
+    ok = (t_near <= t_far) & (t_near > _T_MIN) & active[None]
     return jnp.where(ok, t_near, jnp.inf)
 
 
-def _capsule_t(o, d, posed: _Posed, scene: Scene):
+def _capsule_t(o, d, center, hl, r, active):
     """(C, K) entry distances of unit rays into the upright capsules (yaw does not matter)."""
-    ox = o[:, 0:1] - posed.cap_center[None, :, 0]
-    oy = o[:, 1:2] - posed.cap_center[None, :, 1]
-    oz = o[:, 2:3] - posed.cap_center[None, :, 2]
+    ox = o[:, 0:1] - center[None, :, 0]
+    oy = o[:, 1:2] - center[None, :, 1]
+    oz = o[:, 2:3] - center[None, :, 2]
     dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
-    hl, r = scene.capsule_half_length[None], scene.capsule_radius[None]
+    hl, r = hl[None], r[None]
     a = dx * dx + dy * dy
     b = ox * dx + oy * dy
     c = ox * ox + oy * oy - r * r
@@ -253,11 +255,10 @@ def _capsule_t(o, d, posed: _Posed, scene: Scene):
     t_cyl = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(ok, a, 1.0)
     t_cyl = jnp.where(ok & (t_cyl > _T_MIN) & (jnp.abs(oz + t_cyl * dz) <= hl), t_cyl, jnp.inf)
     # end spheres: b' = b + (oz -/+ hl) dz, c' = |oc|^2 - r^2
-    q = ox * ox + oy * oy - r * r
-    t_top = _sphere_entry2(b + (oz - hl) * dz, q + (oz - hl) * (oz - hl))
-    t_bot = _sphere_entry2(b + (oz + hl) * dz, q + (oz + hl) * (oz + hl))
+    t_top = _sphere_entry2(b + (oz - hl) * dz, c + (oz - hl) * (oz - hl))
+    t_bot = _sphere_entry2(b + (oz + hl) * dz, c + (oz + hl) * (oz + hl))
     t = jnp.minimum(t_cyl, jnp.minimum(t_top, t_bot))
-    return jnp.where(scene.capsule_active[None], t, jnp.inf)
+    return jnp.where(active[None], t, jnp.inf)
 
 
 def _sphere_entry2(b, c):
@@ -266,14 +267,66 @@ def _sphere_entry2(b, c):
     return jnp.where((disc >= 0) & (t > _T_MIN), t, jnp.inf)
 
 
-def _cast_chunk(scene: Scene, posed: _Posed, o: Float[Array, "C 3"], d: Float[Array, "C 3"]):
+#: Primitives of each kind tested per chunk after culling (when more survive the cull, the chunk
+#: tests all of them: culling never changes a result).
+CULL_CANDIDATES = 32
+
+
+def _nearest(scene: Scene, posed: _Posed, o, d, box_idx, cap_idx):
+    """Nearest hit among the ground and the given primitives: ``(t, global index)`` with index 0
+    the ground, ``1..B`` boxes, ``B+1..`` capsules."""
     n_box = scene.box_center.shape[0]
-    t_box = _box_t(o, d, posed, scene)
-    t_cap = _capsule_t(o, d, posed, scene)
+    t_box = _box_t(o, d, posed.box_center[box_idx], posed.box_cos[box_idx], posed.box_sin[box_idx],
+                   scene.box_half_extent[box_idx], scene.box_active[box_idx])
+    t_cap = _capsule_t(o, d, posed.cap_center[cap_idx], scene.capsule_half_length[cap_idx],
+                       scene.capsule_radius[cap_idx], scene.capsule_active[cap_idx])
     t_gnd = ray_ground_distance(o, d)
     t_all = jnp.concatenate([t_gnd[:, None], t_box, t_cap], axis=1)
-    idx = jnp.argmin(t_all, axis=1)
+    k = jnp.argmin(t_all, axis=1)
     t = jnp.min(t_all, axis=1)
+    glob = jnp.concatenate([jnp.zeros(1, jnp.int32), 1 + box_idx.astype(jnp.int32), 1 + n_box + cap_idx.astype(jnp.int32)])
+    return t, glob[k]
+
+
+def _candidates(o, d, center, radius, active):
+    """Primitives (bounding spheres) that some ray of the bundle may hit: the bundle is bounded by
+    a cone (axis = mean direction, half-angle to the widest ray) from a ball around the mean
+    origin (radius = farthest origin). Conservative: never drops a primitive a ray can hit."""
+    oc = jnp.mean(o, axis=0)
+    rho = jnp.sqrt(jnp.max(jnp.sum((o - oc) ** 2, axis=-1)))
+    axis = jnp.mean(d, axis=0)
+    axis = axis / jnp.maximum(jnp.sqrt(jnp.sum(axis * axis)), 1e-12)
+    cos_half = jnp.clip(jnp.min(d @ axis), -1.0, 1.0)
+    half = jnp.arccos(cos_half)
+    v = center - oc
+    dist = jnp.sqrt(jnp.sum(v * v, axis=-1))
+    r = radius + rho + 1e-3
+    inside = dist <= r
+    cos_beta = jnp.clip((v @ axis) / jnp.maximum(dist, 1e-12), -1.0, 1.0)
+    beta = jnp.arccos(cos_beta)
+    spread = jnp.arcsin(jnp.clip(r / jnp.maximum(dist, 1e-12), 0.0, 1.0))
+    ok = inside | (beta <= half + spread + 1e-3) | (half > 1.2)
+    return ok & active
+
+
+def _cast_chunk(scene: Scene, posed: _Posed, o: Float[Array, "C 3"], d: Float[Array, "C 3"]):
+    n_box = scene.box_center.shape[0]
+    n_cap = scene.capsule_center.shape[0]
+    mb, mk = min(CULL_CANDIDATES, n_box), min(CULL_CANDIDATES, n_cap)
+    box_radius = jnp.sqrt(jnp.sum(scene.box_half_extent**2, axis=-1))
+    cand_b = _candidates(o, d, posed.box_center, box_radius, scene.box_active)
+    cand_k = _candidates(o, d, posed.cap_center, scene.capsule_half_length + scene.capsule_radius, scene.capsule_active)
+    fits = (jnp.sum(cand_b) <= mb) & (jnp.sum(cand_k) <= mk)
+
+    def culled(_):
+        box_idx = jnp.argsort(~cand_b, stable=True)[:mb]
+        cap_idx = jnp.argsort(~cand_k, stable=True)[:mk]
+        return _nearest(scene, posed, o, d, box_idx, cap_idx)
+
+    def full(_):
+        return _nearest(scene, posed, o, d, jnp.arange(n_box), jnp.arange(n_cap))
+
+    t, idx = jax.lax.cond(fits, culled, full, None)
     hit = t < FAR_M
     t_safe = jnp.where(hit, t, FAR_M).astype(o.dtype)
     p = o + t_safe[:, None] * d
@@ -319,8 +372,8 @@ def _cast_chunk(scene: Scene, posed: _Posed, o: Float[Array, "C 3"], d: Float[Ar
                 normal_world=n_world.astype(o.dtype))
 
 
-#: Rays per jitted call of the caster: every render is cut into blocks of this many rays (smaller
-#: renders use the next power-of-two multiple of the chunk), so all cameras share a few compilations.
+#: Rays per jitted call of the caster: every render is cut into blocks of this many rays (renders of
+#: at most one chunk use a one-chunk block), so all cameras share two compilations.
 DEFAULT_BLOCK = 65536
 
 
@@ -340,11 +393,7 @@ def _cast_flat(scene: Scene, origins, directions, time, chunk_size: int, block_s
     n = origins.shape[0]
     chunk = max(1, int(chunk_size))
     block = max(chunk, (int(block_size) // chunk) * chunk)
-    size = chunk
-    while size < min(n, block):
-        size *= 2
-    size = min(size, block)
-    chunk = min(chunk, size)
+    size = chunk if n <= chunk else block  # two shapes only: one small, one large compilation
     time = jnp.asarray(time, _F32)
     parts = []
     for start in range(0, n, size):
@@ -419,8 +468,26 @@ def render_pixels(
     model, central or not (`AbstractCamera.ray_origins`)."""
     uv = jnp.asarray(uv, _F32)
     o, d, valid, pose = _camera_rays(camera, camera_to_world, uv)
-    out = _cast_flat(scene, o, d, time, chunk_size)
+    if uv.ndim == 3:  # an image: cast square tiles together (coherent chunks cull well)
+        order = _tile_order(uv.shape[0], uv.shape[1], chunk_size)
+        out = _cast_flat(scene, _take(o, order), _take(d, order), time, chunk_size)
+        out = jax.tree_util.tree_map(lambda x: _take(x, np.argsort(order)), out)
+    else:
+        out = _cast_flat(scene, o, d, time, chunk_size)
     return _finish(out, valid, pose)
+
+
+@jax.jit
+def _take(x, index):
+    return x[index]
+
+
+def _tile_order(height: int, width: int, chunk_size: int) -> np.ndarray:
+    """Flat pixel indices ordered tile by tile (square tiles of about ``chunk_size`` pixels)."""
+    side = 1 << max(0, int(math.floor(math.log2(max(chunk_size, 1)) / 2)))
+    r, c = np.divmod(np.arange(height * width), width)
+    key = ((r // side) * ((width + side - 1) // side) + c // side) * side * side + (r % side) * side + (c % side)
+    return np.argsort(key, kind="stable").astype(np.int32)
 
 
 def render(

@@ -284,12 +284,13 @@ def _sensor_to_world(frame: StreetFrame, location_iso: tuple[float, float, float
 
 
 def lidar_directions(config: CaptureConfig) -> np.ndarray:
-    """Unit ray directions ``(channels * points_per_channel, 3)`` of one full rotation in the sensor
-    frame (Unreal: x forward, y right, z up); azimuth clockwise from x seen from above, channels
-    from the upper to the lower field-of-view limit, as CARLA's ray-cast lidar."""
+    """Unit ray directions ``(points_per_channel * channels, 3)`` of one full rotation in the sensor
+    frame (Unreal: x forward, y right, z up), azimuth-major: for each azimuth step (clockwise from x
+    seen from above, i.e. towards +y) the channels from the upper to the lower field-of-view limit,
+    as CARLA's ray-cast lidar sweeps."""
     elev = np.deg2rad(np.linspace(config.lidar_upper_fov_deg, config.lidar_lower_fov_deg, config.lidar_channels))
     az = np.deg2rad(np.arange(config.lidar_points_per_channel) * 360.0 / config.lidar_points_per_channel)
-    e, a = np.meshgrid(elev, az, indexing="ij")
+    a, e = np.meshgrid(az, elev, indexing="ij")  # azimuth-major: chunks of rays are narrow wedges
     return np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=-1).reshape(-1, 3)
 
 
