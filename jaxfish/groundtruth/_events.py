@@ -1,0 +1,127 @@
+"""DVS events of the cube faces mapped to fisheye pixels through the inverse of the cube -> fisheye
+LUT.
+
+The rule (``docs/groundtruth.md``): the LUT sends every fisheye pixel's centre ray to one face
+pixel (the nearest to where the ray hits the face, as `resample_nearest`). An event at face pixel
+``q`` is emitted at **every** fisheye pixel whose centre ray lands on ``q``: a face pixel feeds
+zero fisheye pixels (the faces oversample the fisheye almost everywhere, and face regions outside
+the fisheye image feed none) or several (where the fisheye is denser than the face). The number
+of fisheye events of a face event is the *fan-out* of its face pixel; timestamps and polarities
+are copied, and the result is kept in time order (stable: ties keep face order, then fisheye
+pixel order).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Int
+
+from ..reprojection import Lut, centre_sample
+
+
+class EventMap(eqx.Module):
+    """The inverse LUT: for each face pixel (flat index ``(face * S + y) * S + x``), the fisheye
+    pixels (flat ``v * W + u``) fed by it.
+
+    - `targets` ``(F * S * S, M)`` int32: fisheye flat indices, -1 padding;
+    - `fanout` ``(F * S * S,)`` int32: how many fisheye pixels each face pixel feeds;
+    - static: `width`, `height` (fisheye), `face_size`, `num_faces`, `max_fanout` ``M``.
+    """
+
+    targets: Int[Array, "FSS M"]
+    fanout: Int[Array, " FSS"]
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+    face_size: int = eqx.field(static=True)
+    num_faces: int = eqx.field(static=True)
+    max_fanout: int = eqx.field(static=True)
+
+
+def _inverse(nearest: Array, valid: Array, n_src: int, m: int):
+    flat = nearest.reshape(-1)
+    ok = valid.reshape(-1)
+    key = jnp.where(ok, flat, n_src)
+    order = jnp.argsort(key, stable=True).astype(jnp.int32)
+    fanout = jnp.zeros(n_src + 1, jnp.int32).at[key].add(1)[:n_src]
+    start = jnp.cumsum(fanout) - fanout
+    slot = jnp.arange(m, dtype=jnp.int32)
+    pos = jnp.clip(start[:, None] + slot[None], 0, order.shape[0] - 1)
+    targets = jnp.where(slot[None] < fanout[:, None], order[pos], -1)
+    return targets, fanout
+
+
+def event_map_from_lut(lut: Lut, *, max_fanout: int | None = None) -> EventMap:
+    """Build the `EventMap` of a cube -> fisheye `Lut` (its centre sample). ``max_fanout`` (static)
+    defaults to the LUT's true maximum (computed on the host; pass it explicitly under `jax.jit`).
+    Face pixels feeding more than ``max_fanout`` fisheye pixels keep only the first ``max_fanout``."""
+    k = centre_sample(lut.supersample)
+    nearest = lut.nearest_index[..., k]
+    valid = lut.valid[..., k]
+    f, s_h, s_w = lut.source_shape
+    n_src = f * s_h * s_w
+    if max_fanout is None:
+        counts = jnp.zeros(n_src + 1, jnp.int32).at[jnp.where(valid, nearest, n_src).reshape(-1)].add(1)[:n_src]
+        max_fanout = max(int(jnp.max(counts)), 1)
+    targets, fanout = jax.jit(_inverse, static_argnums=(2, 3))(nearest, valid, n_src, int(max_fanout))
+    h, w = lut.target_shape
+    return EventMap(targets=targets, fanout=jnp.minimum(fanout, int(max_fanout)), width=int(w), height=int(h),
+                    face_size=int(s_w), num_faces=int(f), max_fanout=int(max_fanout))
+
+
+class FisheyeEvents(eqx.Module):
+    """Events on the fisheye image, padded to a static size: the first `count` entries are the
+    events in time order (`x` column, `y` row, `t` as given, `polarity` True = brighter, `face` the
+    source face index); `valid` marks them."""
+
+    x: Int[Array, " N"]
+    y: Int[Array, " N"]
+    t: Int[Array, " N"]
+    polarity: Bool[Array, " N"]
+    face: Int[Array, " N"]
+    valid: Bool[Array, " N"]
+    count: Int[Array, ""]
+
+
+def map_events(
+    event_map: EventMap,
+    face: Int[ArrayLike, " E"],
+    x: Int[ArrayLike, " E"],
+    y: Int[ArrayLike, " E"],
+    t: Int[ArrayLike, " E"],
+    polarity: Bool[ArrayLike, " E"],
+) -> FisheyeEvents:
+    """Map face events (face index in the `CubeRig` order, face pixel ``x`` column / ``y`` row,
+    time ``t`` in any integer unit, polarity) to fisheye events under the module's rule. Output
+    size ``E * max_fanout`` (static); sorted by time, valid events first. Pure JAX."""
+    fi = jnp.asarray(face).astype(jnp.int32)
+    xi = jnp.asarray(x).astype(jnp.int32)
+    yi = jnp.asarray(y).astype(jnp.int32)
+    tt = jnp.asarray(t)
+    s = event_map.face_size
+    inb = (fi >= 0) & (fi < event_map.num_faces) & (xi >= 0) & (xi < s) & (yi >= 0) & (yi < s)
+    src = jnp.where(inb, (fi * s + yi) * s + xi, 0)
+    tg = jnp.where(inb[:, None], event_map.targets[src], -1)  # (E, M)
+    ok = (tg >= 0).reshape(-1)
+    tg = tg.reshape(-1)
+    m = event_map.max_fanout
+    rep = lambda a: jnp.repeat(a, m)  # noqa: E731
+    t_rep = rep(tt)
+    # Stable sort by (invalid, t): valid events first, each in time order; ties keep input order.
+    order = jnp.lexsort((t_rep, ~ok))
+    tg, ok = tg[order], ok[order]
+    w = event_map.width
+    safe = jnp.where(ok, tg, 0)
+    return FisheyeEvents(
+        x=jnp.where(ok, safe % w, 0).astype(jnp.int32), y=jnp.where(ok, safe // w, 0).astype(jnp.int32),
+        t=jnp.where(ok, t_rep[order], 0), polarity=ok & rep(jnp.asarray(polarity, bool))[order],
+        face=jnp.where(ok, rep(fi)[order], -1), valid=ok, count=jnp.sum(ok.astype(jnp.int32)),
+    )
+
+
+def compact_events(events: FisheyeEvents) -> dict[str, np.ndarray]:
+    """The valid events as NumPy arrays ``x, y, t, polarity, face`` (host; variable length)."""
+    n = int(events.count)
+    return {k: np.asarray(getattr(events, k))[:n] for k in ("x", "y", "t", "polarity", "face")}

@@ -1,0 +1,186 @@
+"""Fisheye images, depth and labels from cube faces (through the reprojection kernels), and the
+whole per-camera ground truth of one sample."""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ..cameras import AbstractCamera
+from ..reprojection import Lut, resample_bilinear, resample_depth, resample_nearest
+from ..transforms import Pose
+from ._boxes2d import Boxes2D, boxes_from_instances, boxes_from_surfaces
+from ._boxes3d import Boxes3D
+from ._classes import carla_to_synwoodscape
+from ._flow import FAR_RANGE_M, FlowField, analytic_flow, pixel_points, rigid_motion
+from ._instances import (
+    BOX_MARGIN_M,
+    FALLBACK_DISTANCE_M,
+    MOTION_THRESHOLD_M,
+    TILE_SIZE,
+    InstanceMap,
+    _assign,
+    _candidates,
+    box_displacements,
+    motion_segmentation,
+)
+
+
+class FisheyeImages(eqx.Module):
+    """One fisheye camera at one instant, resampled from its cube faces: `rgb` ``(H, W, 3)``
+    (source dtype, bilinear, seam-free), `range_m` (Euclidean range along the fisheye ray, metres;
+    sky/far exactly 1000; 0 outside the lens domain), `tag` (CARLA semantic tag, nearest, never
+    mixed), `valid` (the pixel has a ray seen by a face)."""
+
+    rgb: Array
+    range_m: Float[Array, "H W"]
+    tag: Int[Array, "H W"]
+    valid: Bool[Array, "H W"]
+
+
+def fisheye_images(
+    lut: Lut, faces_rgb: ArrayLike, faces_depth_m: Float[ArrayLike, "F S S"], faces_tag: Int[ArrayLike, "F S S"]
+) -> FisheyeImages:
+    """Resample one camera's faces ``(F, S, S[, 3])`` (RGB, CARLA planar depth in metres, CARLA
+    tags) to the fisheye through ``lut`` with `resample_bilinear`, `resample_depth` and
+    `resample_nearest` (``reduce="centre"`` for labels so they match the depth's centre sample)."""
+    rgb, valid = resample_bilinear(jnp.asarray(faces_rgb), lut)
+    rng, _ = resample_depth(jnp.asarray(faces_depth_m, jnp.float32), lut, far_m=FAR_RANGE_M)
+    tag, _ = resample_nearest(jnp.asarray(faces_tag), lut, reduce="centre")
+    return FisheyeImages(rgb=rgb, range_m=rng, tag=tag.astype(jnp.int32), valid=valid)
+
+
+def range_to_z_depth(camera: AbstractCamera, range_m: Float[ArrayLike, "H W"]) -> Float[Array, "H W"]:
+    """Planar z-depth (along the camera's optical axis, metres) of a range map; far/sky pixels
+    (range >= 1000) stay 1000, pixels without a ray 0. Beyond 90 degrees z is negative."""
+    r = jnp.asarray(range_m)
+    rays, ok = camera.unproject(camera.pixel_grid(r.dtype))
+    z = r * rays[..., 2].astype(r.dtype)
+    z = jnp.where(r >= FAR_RANGE_M, jnp.asarray(FAR_RANGE_M, r.dtype), z)
+    return jnp.where(ok, z, 0.0)
+
+
+class CameraGroundTruth(eqx.Module):
+    """All ground truth of one fisheye camera for one sample (t, with its previous frame t-1).
+
+    - `images_prev`, `images`: `FisheyeImages` at t-1 and t;
+    - `semantic_prev`, `semantic`: SynWoodScape class ids ``(H, W)`` (two-wheelers and the ego
+      split off by their boxes);
+    - `instances_prev`, `instances`: `InstanceMap` at t-1 and t;
+    - `motion`: moving-object mask at t; `displacement_m` ``(B,)`` per box;
+    - `flow`: forward flow on the t-1 grid (t-1 -> t); `flow_backward` (t grid, t -> t-1) or None;
+    - `boxes_2d`: visible boxes (from the instance mask at t); `boxes_2d_full`: full extent from
+      the box surfaces at t.
+    """
+
+    images_prev: FisheyeImages
+    images: FisheyeImages
+    semantic_prev: Int[Array, "H W"]
+    semantic: Int[Array, "H W"]
+    instances_prev: InstanceMap
+    instances: InstanceMap
+    motion: Bool[Array, "H W"]
+    displacement_m: Float[Array, " B"]
+    flow: FlowField
+    flow_backward: FlowField | None
+    boxes_2d: Boxes2D
+    boxes_2d_full: Boxes2D
+
+
+def camera_to_world(vehicle_to_world: Pose, camera_to_vehicle: Pose) -> Pose:
+    """OpenCV camera -> CARLA world: ``vehicle_to_world @ camera_to_vehicle`` (float32)."""
+    v = Pose(vehicle_to_world.rotation_matrix, vehicle_to_world.translation, dtype=jnp.float32)
+    c = Pose(camera_to_vehicle.rotation_matrix, camera_to_vehicle.translation, dtype=jnp.float32)
+    return v @ c
+
+
+def _labels(camera, images: FisheyeImages, cam_to_world: Pose, boxes: Boxes3D, carla_version, margin_m, fallback_m, k):
+    world, ok = _world_points(camera, images, cam_to_world)
+    base = jnp.where(ok, carla_to_synwoodscape(images.tag, carla_version=carla_version), -1)
+    inst = _assign(world, base, boxes, margin_m, fallback_m, TILE_SIZE, k)
+    sem = carla_to_synwoodscape(images.tag, carla_version=carla_version, box_class=inst.class_id)
+    return inst, sem
+
+
+def fisheye_ground_truth(
+    lut: Lut,
+    camera: AbstractCamera,
+    camera_to_vehicle: Pose,
+    faces_prev: Any,
+    faces: Any,
+    boxes_prev: Boxes3D,
+    boxes: Boxes3D,
+    vehicle_to_world_prev: Pose,
+    vehicle_to_world: Pose,
+    *,
+    carla_version: str = "0.9.10",
+    motion_threshold_m: float = MOTION_THRESHOLD_M,
+    backward_flow: bool = False,
+    margin_m: float = BOX_MARGIN_M,
+    fallback_m: float = FALLBACK_DISTANCE_M,
+    max_candidates: int | None = None,
+    surface_samples: int = 12,
+) -> CameraGroundTruth:
+    """Everything for one fisheye camera: ``faces_prev`` / ``faces`` carry ``rgb (F, S, S, 3)``,
+    ``depth_m (F, S, S)`` (CARLA planar depth, metres) and ``semantic (F, S, S)`` (CARLA tags) at
+    t-1 and t (e.g. `jaxfish.scene.CameraImages` stacked over faces); ``boxes_prev`` / ``boxes``
+    the same actors in the same order at t-1 and t; ``vehicle_to_world*`` the ego's ISO vehicle
+    frame -> CARLA world (`vehicle_to_world_from_carla`). Flow uses the instance assignment at
+    t-1 (each point moves with its box) and the range map at t for occlusions."""
+    img_p, img = _jit_images_pair(lut, *(jnp.asarray(getattr(f, k)) for f in (faces_prev, faces) for k in ("rgb", "depth_m", "semantic")))
+    c2w_p = camera_to_world(vehicle_to_world_prev, camera_to_vehicle)
+    c2w = camera_to_world(vehicle_to_world, camera_to_vehicle)
+    if max_candidates is None:
+        reach = max(margin_m, fallback_m)
+        counts = _jit_counts(camera, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach)
+        max_candidates = max(int(jnp.max(counts)), 1)
+    return _jit_rest(camera, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, float(motion_threshold_m),
+                     bool(backward_flow), float(margin_m), float(fallback_m), int(max_candidates), int(surface_samples))
+
+
+@jax.jit
+def _jit_images_pair(lut, rgb_p, depth_p, tag_p, rgb, depth, tag):
+    return fisheye_images(lut, rgb_p, depth_p, tag_p), fisheye_images(lut, rgb, depth, tag)
+
+
+def _world_points(camera, images: FisheyeImages, cam_to_world: Pose):
+    pts, ok = pixel_points(camera, images.range_m, dtype=jnp.float32)
+    return cam_to_world.apply(pts), ok & images.valid
+
+
+@functools.partial(jax.jit, static_argnums=(7, 8))
+def _jit_counts(camera, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach):
+    out = []
+    for im, c2w_, bx in ((img_p, c2w_p, boxes_prev), (img, c2w, boxes)):
+        world, ok = _world_points(camera, im, c2w_)
+        base = jnp.where(ok, carla_to_synwoodscape(im.tag, carla_version=carla_version), -1)
+        out.append(jnp.max(jnp.sum(_candidates(world, base, bx, TILE_SIZE, reach), axis=-1)))
+    return jnp.stack(out)
+
+
+@functools.partial(jax.jit, static_argnums=tuple(range(7, 14)))
+def _jit_rest(camera, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, motion_threshold_m, backward_flow,
+              margin_m, fallback_m, k, surface_samples):
+    inst_p, sem_p = _labels(camera, img_p, c2w_p, boxes_prev, carla_version, margin_m, fallback_m, k)
+    inst, sem = _labels(camera, img, c2w, boxes, carla_version, margin_m, fallback_m, k)
+    disp = box_displacements(boxes_prev, boxes)
+    motion = motion_segmentation(inst.box_index, disp, boxes.class_id, threshold_m=motion_threshold_m)
+    fwd_motion = rigid_motion(boxes_prev.box_to_world, boxes.box_to_world)
+    flow = analytic_flow(camera, img_p.range_m, inst_p.box_index, fwd_motion, c2w_p, c2w, target_range_m=img.range_m,
+                         valid=img_p.valid)
+    back = None
+    if backward_flow:
+        bwd_motion = rigid_motion(boxes.box_to_world, boxes_prev.box_to_world)
+        back = analytic_flow(camera, img.range_m, inst.box_index, bwd_motion, c2w, c2w_p, target_range_m=img_p.range_m,
+                             valid=img.valid)
+    b2d = boxes_from_instances(inst.box_index, boxes.num_boxes)
+    full = boxes_from_surfaces(boxes, camera, c2w.inverse(), samples=surface_samples)
+    return CameraGroundTruth(
+        images_prev=img_p, images=img, semantic_prev=sem_p, semantic=sem, instances_prev=inst_p, instances=inst,
+        motion=motion, displacement_m=disp, flow=flow, flow_backward=back, boxes_2d=b2d, boxes_2d_full=full,
+    )

@@ -1,0 +1,162 @@
+"""Analytic optical flow: the scene flow of every pixel's 3D point, projected with the camera model.
+
+Convention (also in ``docs/groundtruth.md``): **forward flow** is defined on the grid of the
+*source* instant (t-1) and points to where the surface point seen there is at the *target* instant
+(t): ``flow(p) = uv_t(P) - p`` in pixels, ``u`` right and ``v`` down. Backward flow swaps the
+roles (defined on the t grid, pointing to t-1). Every point moves with the rigid motion of the
+actor it belongs to (static points do not move); the camera moves with the ego vehicle, so every
+point also undergoes the inverse camera motion.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ..cameras import AbstractCamera
+from ..transforms import CARLA_TO_ISO, Pose
+
+#: Default relative tolerance of the occlusion test (predicted range vs the target range map).
+OCCLUSION_REL_TOL = 0.03
+#: Far / sky range (metres): CARLA's depth saturation, SynWoodScape's sky value.
+FAR_RANGE_M = 1000.0
+
+
+class FlowField(eqx.Module):
+    """Optical flow on the source grid, ``(H, W)`` per field.
+
+    - `flow` ``(H, W, 2)``: ``(du, dv)`` pixels from the source pixel to the target position
+      (0 where not `in_image`);
+    - `valid`: the point projects inside the target image *and* is visible there (not occluded;
+      always True when no target range map was given);
+    - `in_image`: the source pixel has a ray and the moved point projects inside the target image;
+    - `target_uv` ``(H, W, 2)``: the target pixel position, `target_range_m` its predicted range.
+    """
+
+    flow: Float[Array, "*batch H W 2"]
+    valid: Bool[Array, "*batch H W"]
+    in_image: Bool[Array, "*batch H W"]
+    target_uv: Float[Array, "*batch H W 2"]
+    target_range_m: Float[Array, "*batch H W"]
+
+
+def vehicle_to_world_from_carla(location: Float[ArrayLike, "*batch 3"], rotation: Float[ArrayLike, "*batch 3"], *, dtype=None) -> Pose:
+    """ISO 8855 ego vehicle frame -> CARLA world of an ego actor whose CARLA transform is
+    ``(location, (pitch, yaw, roll))``: ``Pose.from_carla(...) @ diag(1, -1, 1)`` (determinant -1)."""
+    ego = Pose.from_carla(location, rotation, dtype=dtype)
+    s = jnp.asarray(CARLA_TO_ISO, ego.rotation_matrix.dtype)
+    return Pose(ego.rotation_matrix @ s, ego.translation)
+
+
+def rigid_motion(pose_from: Pose, pose_to: Pose) -> Pose:
+    """World -> world motion of a rigid body whose local -> world pose goes from ``pose_from`` to
+    ``pose_to``: ``pose_to @ pose_from.inverse()`` (batched over actors)."""
+    return pose_to @ pose_from.inverse()
+
+
+def pixel_points(
+    camera: AbstractCamera, range_m: Float[ArrayLike, "H W"], *, dtype=None
+) -> tuple[Float[Array, "H W 3"], Bool[Array, "H W"]]:
+    """Camera-frame 3D point of every pixel centre: ``origin + range * ray`` (metres). ``range_m``
+    is the Euclidean range along the ray (for `Orthographic`, the distance from the image plane)."""
+    r = jnp.asarray(range_m)
+    dtype = dtype or (r.dtype if jnp.issubdtype(r.dtype, jnp.floating) else jnp.float32)
+    grid = camera.pixel_grid(dtype)
+    if tuple(r.shape[-2:]) != tuple(grid.shape[:2]):
+        raise ValueError(f"pixel_points: range map {r.shape} does not match the camera's image {grid.shape[:2]}")
+    rays, ok = camera.unproject(grid)
+    pts = camera.ray_origins(grid).astype(dtype) + r.astype(dtype)[..., None] * rays.astype(dtype)
+    return jnp.where(ok[..., None], pts, 0.0), ok
+
+
+def _sample_taps(img: Array, uv: Array) -> Array:
+    """The 4 bilinear taps (nearest 2 x 2 pixels, clamped) of ``img (H, W)`` at ``uv (..., 2)``."""
+    h, w = img.shape
+    x0 = jnp.clip(jnp.floor(uv[..., 0]), 0, w - 1).astype(jnp.int32)
+    y0 = jnp.clip(jnp.floor(uv[..., 1]), 0, h - 1).astype(jnp.int32)
+    x1 = jnp.clip(x0 + 1, 0, w - 1)
+    y1 = jnp.clip(y0 + 1, 0, h - 1)
+    return jnp.stack([img[y0, x0], img[y0, x1], img[y1, x0], img[y1, x1]], axis=-1)
+
+
+def analytic_flow(
+    camera: AbstractCamera,
+    range_m: Float[ArrayLike, "H W"],
+    actor_index: Int[ArrayLike, "H W"],
+    actor_motion: Pose,
+    camera_to_world_source: Pose,
+    camera_to_world_target: Pose,
+    *,
+    target_camera: AbstractCamera | None = None,
+    target_range_m: Float[ArrayLike, "H W"] | None = None,
+    occlusion_rel_tol: float = OCCLUSION_REL_TOL,
+    valid: Bool[ArrayLike, "H W"] | None = None,
+) -> FlowField:
+    """Optical flow of every source pixel from its range, its actor and the poses.
+
+    - ``range_m``: range along each source pixel's ray (metres; sky/far points at 1000 m are static
+      points at that range);
+    - ``actor_index``: per pixel, the index into ``actor_motion`` of the actor the point belongs to,
+      or -1 for static points;
+    - ``actor_motion``: batched `Pose` ``(A,)`` of world -> world rigid motions from the source to
+      the target instant (`rigid_motion` of the actors' transforms); ``A`` may be 0;
+    - ``camera_to_world_*``: camera (OpenCV) -> world at the source and target instants;
+    - ``target_camera``: the model projecting at the target (default ``camera``: the same camera);
+    - ``target_range_m``: range map of the target image; when given, points hidden at the target
+      (their predicted range exceeds every one of the 4 nearest target ranges by more than
+      ``occlusion_rel_tol``) are not `valid`.
+
+    Pure JAX: jit/vmap-safe (vmap over frames or cameras with batched poses).
+    """
+    tgt_cam = camera if target_camera is None else target_camera
+    r = jnp.asarray(range_m)
+    dtype = r.dtype if jnp.issubdtype(r.dtype, jnp.floating) else jnp.float32
+    pts, ok = pixel_points(camera, r, dtype=dtype)
+    if valid is not None:
+        ok = ok & jnp.asarray(valid, bool)
+    world = camera_to_world_source.apply(pts).astype(dtype)
+    idx = jnp.asarray(actor_index).astype(jnp.int32)
+    rot = actor_motion.rotation_matrix.astype(dtype)
+    if rot.shape[0] > 0:
+        k = jnp.clip(idx, 0, rot.shape[0] - 1)
+        moved = jnp.einsum("...ij,...j->...i", rot[k], world) + actor_motion.translation.astype(dtype)[k]
+        world = jnp.where((idx >= 0)[..., None], moved, world)
+    p_tgt = camera_to_world_target.inverse().apply(world).astype(dtype)
+    uv, ok_proj = tgt_cam.project(p_tgt)
+    uv = uv.astype(dtype)
+    in_image = ok & ok_proj & tgt_cam.contains(uv)
+    grid = camera.pixel_grid(dtype)
+    rays_t, ok_t = tgt_cam.unproject(uv)
+    pred_range = jnp.sum((p_tgt - tgt_cam.ray_origins(uv).astype(dtype)) * rays_t.astype(dtype), axis=-1)
+    in_image = in_image & ok_t
+    vis = in_image
+    if target_range_m is not None:
+        taps = _sample_taps(jnp.asarray(target_range_m).astype(dtype), uv)
+        tol = jnp.asarray(occlusion_rel_tol, dtype)
+        far = jnp.asarray(FAR_RANGE_M, dtype)
+        seen = jnp.any(taps >= pred_range[..., None] * (1 - tol), axis=-1) | ((pred_range >= far * (1 - tol)) & jnp.any(taps >= far, axis=-1))
+        vis = vis & seen
+    flow = jnp.where(in_image[..., None], uv - grid, 0.0)
+    return FlowField(flow=flow, valid=vis, in_image=in_image, target_uv=jnp.where(in_image[..., None], uv, 0.0),
+                     target_range_m=jnp.where(in_image, pred_range, 0.0))
+
+
+def warp_with_flow(image: Float[ArrayLike, "H W C"], flow: Float[ArrayLike, "H W 2"]) -> Float[Array, "H W C"]:
+    """Sample ``image`` bilinearly at ``grid + flow`` (clamped at the border): with forward flow
+    (t-1 grid) and the image at t, this reconstructs the image at t-1 on its valid pixels."""
+    img = jnp.asarray(image)
+    f = jnp.asarray(flow)
+    h, w = img.shape[:2]
+    dtype = f.dtype
+    uu, vv = jnp.meshgrid(jnp.arange(w, dtype=dtype), jnp.arange(h, dtype=dtype), indexing="xy")
+    u = jnp.clip(uu + f[..., 0], 0, w - 1)
+    v = jnp.clip(vv + f[..., 1], 0, h - 1)
+    x0 = jnp.clip(jnp.floor(u), 0, max(w - 2, 0)).astype(jnp.int32)
+    y0 = jnp.clip(jnp.floor(v), 0, max(h - 2, 0)).astype(jnp.int32)
+    fx = (u - x0.astype(dtype))[..., None]
+    fy = (v - y0.astype(dtype))[..., None]
+    im = img.astype(dtype)
+    top = im[y0, x0] + (im[y0, x0 + 1] - im[y0, x0]) * fx
+    bot = im[y0 + 1, x0] + (im[y0 + 1, x0 + 1] - im[y0 + 1, x0]) * fx
+    return top + (bot - top) * fy

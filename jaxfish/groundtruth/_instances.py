@@ -1,0 +1,248 @@
+"""Instance and motion segmentation: every instance-class pixel's 3D point tested against the
+oriented 3D boxes of the actors (six planes), with tile culling so that the cost is
+``pixels x candidates`` rather than ``pixels x actors``."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, UInt8
+
+from ._boxes3d import Boxes3D
+from ._classes import CLASS_EGO, CLASS_PEDESTRIAN, CLASS_TWO_WHEELER, CLASS_VEHICLE
+
+#: Default growth of every box (metres) in the inside test: absorbs depth quantisation and the
+#: sub-pixel error of the cube -> fisheye depth resampling.
+BOX_MARGIN_M = 0.05
+#: Default distance (metres) within which an instance pixel in no box goes to the nearest
+#: class-consistent box; farther pixels stay unassigned (actor id 0).
+FALLBACK_DISTANCE_M = 0.3
+#: Default tile side (pixels) of the culling grid.
+TILE_SIZE = 16
+#: Default motion threshold (metres of displacement between t-1 and t).
+MOTION_THRESHOLD_M = 0.5
+
+
+class InstanceMap(eqx.Module):
+    """Per-pixel instance labels ``(H, W)``.
+
+    - `box_index`: index into the `Boxes3D` (-1: no instance);
+    - `actor_id`: CARLA actor id (0: no instance); `class_id`: the box's SynWoodScape class (-1);
+    - `unassigned`: an instance-class pixel (vehicle, two-wheeler, pedestrian, ego) that lies in no
+      class-consistent box, not even within the fallback distance;
+    - `fallback`: assigned by the nearest-box fallback rather than lying inside a box.
+    """
+
+    box_index: Int[Array, "H W"]
+    actor_id: Int[Array, "H W"]
+    class_id: Int[Array, "H W"]
+    unassigned: Bool[Array, "H W"]
+    fallback: Bool[Array, "H W"]
+
+
+def _pixel_groups(pixel_class: Array) -> Array:
+    """Class group of a pixel: 0 none, 1 pedestrian, 2 vehicle-like (vehicle, two-wheeler, ego)."""
+    veh = (pixel_class == CLASS_VEHICLE) | (pixel_class == CLASS_TWO_WHEELER) | (pixel_class == CLASS_EGO)
+    return jnp.where(pixel_class == CLASS_PEDESTRIAN, 1, jnp.where(veh, 2, 0)).astype(jnp.int32)
+
+
+def _tiles(x: Array, tile: int, fill) -> Array:
+    """``(H, W, ...)`` -> ``(T, tile * tile, ...)`` (padded with ``fill``)."""
+    h, w = x.shape[:2]
+    th, tw = -(-h // tile), -(-w // tile)
+    pad = [(0, th * tile - h), (0, tw * tile - w)] + [(0, 0)] * (x.ndim - 2)
+    x = jnp.pad(x, pad, constant_values=fill)
+    x = x.reshape((th, tile, tw, tile) + x.shape[2:])
+    x = jnp.swapaxes(x, 1, 2)
+    return x.reshape((th * tw, tile * tile) + x.shape[4:])
+
+
+def _untile(x: Array, h: int, w: int, tile: int) -> Array:
+    th, tw = -(-h // tile), -(-w // tile)
+    x = x.reshape((th, tw, tile, tile) + x.shape[2:])
+    x = jnp.swapaxes(x, 1, 2).reshape((th * tile, tw * tile) + x.shape[4:])
+    return x[:h, :w]
+
+
+def _candidates(points_world, pixel_class, boxes: Boxes3D, tile: int, reach: float):
+    """Per tile, which boxes may hold one of its instance pixels: the world AABB of the tile's
+    instance points against each box's world AABB grown by ``reach``. Returns ``(T, B)``."""
+    dtype = points_world.dtype
+    grp = _tiles(_pixel_groups(pixel_class), tile, 0)
+    pts = _tiles(points_world, tile, 0.0)
+    use = grp > 0
+    big = jnp.asarray(np.finfo(np.float32).max / 4, dtype)
+    lo = jnp.min(jnp.where(use[..., None], pts, big), axis=1)
+    hi = jnp.max(jnp.where(use[..., None], pts, -big), axis=1)
+    has_ped = jnp.any(grp == 1, axis=1)
+    has_veh = jnp.any(grp == 2, axis=1)
+    c = boxes.corners().astype(dtype)
+    r = jnp.asarray(reach, dtype)
+    blo, bhi = jnp.min(c, axis=1) - r, jnp.max(c, axis=1) + r
+    overlap = jnp.all((lo[:, None, :] <= bhi[None]) & (hi[:, None, :] >= blo[None]), axis=-1)
+    ped_box = boxes.class_id == CLASS_PEDESTRIAN
+    veh_box = (boxes.class_id == CLASS_VEHICLE) | (boxes.class_id == CLASS_TWO_WHEELER) | (boxes.class_id == CLASS_EGO)
+    consistent = (has_ped[:, None] & ped_box[None]) | (has_veh[:, None] & veh_box[None])
+    return overlap & consistent & boxes.active[None]
+
+
+def max_box_candidates(
+    points_world: Float[ArrayLike, "H W 3"], pixel_class: Int[ArrayLike, "H W"], boxes: Boxes3D, *,
+    tile: int = TILE_SIZE, margin_m: float = BOX_MARGIN_M, fallback_m: float = FALLBACK_DISTANCE_M,
+) -> int:
+    """The largest number of candidate boxes of any culling tile (host value): the static
+    ``max_candidates`` that makes `instance_segmentation` exact."""
+    cand = _jit_candidates(jnp.asarray(points_world), jnp.asarray(pixel_class), boxes, tile, max(margin_m, fallback_m))
+    return int(jnp.max(jnp.sum(cand, axis=-1))) if cand.size else 0
+
+
+_jit_candidates = jax.jit(_candidates, static_argnums=(3, 4))
+
+
+def instance_segmentation(
+    points_world: Float[ArrayLike, "H W 3"],
+    pixel_class: Int[ArrayLike, "H W"],
+    boxes: Boxes3D,
+    *,
+    valid: Bool[ArrayLike, "H W"] | None = None,
+    margin_m: float = BOX_MARGIN_M,
+    fallback_m: float = FALLBACK_DISTANCE_M,
+    tile: int = TILE_SIZE,
+    max_candidates: int | None = None,
+) -> InstanceMap:
+    """Assign every instance-class pixel to the actor whose 3D box holds its point.
+
+    ``points_world`` are the pixels' 3D points (CARLA world, metres; `pixel_points` then the
+    camera -> world pose); ``pixel_class`` their SynWoodScape class *before* the two-wheeler / ego
+    split (`carla_to_synwoodscape` without ``box_class``). Rules (``docs/groundtruth.md``):
+
+    1. only pixels of class pedestrian (4), vehicle (10), two-wheeler (21) or ego (24) are tested,
+       and only against class-consistent boxes: pedestrian pixels against pedestrian boxes,
+       vehicle-like pixels against vehicle, two-wheeler and ego boxes;
+    2. a point is inside a box when all six plane tests pass with the half extents grown by
+       ``margin_m``; inside several boxes it goes to the one it is deepest in (smallest
+       ``max_i |x_i| / h_i``);
+    3. a pixel in no box goes to the nearest consistent box if its distance to that box is at most
+       ``fallback_m`` (`InstanceMap.fallback`), else it stays unassigned (actor id 0, its semantic
+       class unchanged; `InstanceMap.unassigned`).
+
+    Culling: the image is cut into ``tile x tile`` tiles; a tile only tests the boxes whose world
+    AABB (grown by the larger of the two margins) meets the AABB of the tile's instance points and
+    whose class is consistent with one of them. ``max_candidates`` (static) bounds the candidates
+    per tile; ``None`` computes the exact bound on the host first (`max_box_candidates`; not inside
+    `jax.jit`). Cost: ``pixels x max_candidates`` box tests plus ``tiles x boxes`` AABB tests.
+    """
+    pts = jnp.asarray(points_world)
+    cls = jnp.asarray(pixel_class).astype(jnp.int32)
+    if pts.shape[:-1] != cls.shape or pts.shape[-1:] != (3,):
+        raise ValueError(f"instance_segmentation: points {pts.shape} and classes {cls.shape} must be (H, W, 3) and (H, W)")
+    if valid is not None:
+        cls = jnp.where(jnp.asarray(valid, bool), cls, -1)
+    if max_candidates is None:
+        if isinstance(pts, jax.core.Tracer):
+            raise ValueError("instance_segmentation: pass a static max_candidates inside jax.jit")
+        max_candidates = max_box_candidates(pts, cls, boxes, tile=tile, margin_m=margin_m, fallback_m=fallback_m)
+    k = int(min(max(max_candidates, 1), max(boxes.num_boxes, 1)))
+    return _jit_assign(pts, cls, boxes, float(margin_m), float(fallback_m), int(tile), k)
+
+
+def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: int, k: int) -> InstanceMap:
+    h, w = cls.shape
+    dtype = pts.dtype
+    if boxes.num_boxes == 0:
+        none = jnp.full((h, w), -1, jnp.int32)
+        un = _pixel_groups(cls) > 0
+        return InstanceMap(none, jnp.zeros((h, w), jnp.int32), none, un, jnp.zeros((h, w), bool))
+    cand = _candidates(pts, cls, boxes, tile, max(margin_m, fallback_m))  # (T, B)
+    score = jnp.where(cand, 1, 0)
+    _, top = jax.lax.top_k(score, k)  # (T, K) candidates first
+    top_ok = jnp.take_along_axis(cand, top, axis=1)
+    tp = _tiles(pts, tile, 0.0)  # (T, P, 3)
+    tg = _tiles(_pixel_groups(cls), tile, 0)  # (T, P)
+    rot_all = boxes.box_to_world.rotation_matrix.astype(dtype)
+    ctr_all = boxes.box_to_world.translation.astype(dtype)
+    he_all = boxes.half_extent.astype(dtype)
+    grp_all = jnp.where(boxes.class_id == CLASS_PEDESTRIAN, 1, jnp.where(boxes.class_id >= 0, 2, 0))
+    big = jnp.asarray(np.inf, dtype)
+    margin = jnp.asarray(margin_m, dtype)
+    reach = jnp.asarray(fallback_m, dtype)
+
+    def step(j, carry):
+        in_d, in_i, near_d, near_i = carry
+        b = top[:, j]  # (T,)
+        local = jnp.einsum("tji,tpj->tpi", rot_all[b], tp - ctr_all[b][:, None, :])
+        he = he_all[b][:, None, :]
+        a = jnp.abs(local)
+        ok = top_ok[:, j][:, None] & (grp_all[b][:, None] == tg) & (tg > 0)
+        depth = jnp.max(a / he, axis=-1)
+        inside = ok & jnp.all(a <= he + margin, axis=-1) & (depth < in_d)
+        outside = jnp.sqrt(jnp.sum(jnp.maximum(a - he, 0.0) ** 2, axis=-1))
+        closer = ok & (outside <= reach) & (outside < near_d)
+        bj = jnp.broadcast_to(b[:, None], in_i.shape)
+        return (jnp.where(inside, depth, in_d), jnp.where(inside, bj, in_i),
+                jnp.where(closer, outside, near_d), jnp.where(closer, bj, near_i))
+
+    shape = tg.shape
+    init = (jnp.full(shape, big), jnp.full(shape, -1, jnp.int32), jnp.full(shape, big), jnp.full(shape, -1, jnp.int32))
+    _, in_i, _, near_i = jax.lax.fori_loop(0, k, step, init)
+    any_in = in_i >= 0
+    any_near = (near_i >= 0) & ~any_in
+    chosen = jnp.where(any_in, in_i, near_i)
+    assigned = any_in | any_near
+    box_index = jnp.where(assigned, chosen, -1).astype(jnp.int32)
+    box_index = _untile(box_index, h, w, tile)
+    fallback = _untile(any_near, h, w, tile)
+    safe = jnp.clip(box_index, 0, boxes.num_boxes - 1)
+    has = box_index >= 0
+    return InstanceMap(
+        box_index=box_index,
+        actor_id=jnp.where(has, boxes.actor_id[safe], 0).astype(jnp.int32),
+        class_id=jnp.where(has, boxes.class_id[safe], -1).astype(jnp.int32),
+        unassigned=(_pixel_groups(cls) > 0) & ~has,
+        fallback=fallback,
+    )
+
+
+_jit_assign = jax.jit(_assign, static_argnums=(3, 4, 5, 6))
+
+
+def instance_colors(actor_id: Int[ArrayLike, "*batch"]) -> UInt8[Array, "*batch 3"]:
+    """A colour per actor id, the same in every frame and recording (an integer hash of the id);
+    id 0 (no instance) is black. Channels lie in 48..255 so no actor is black."""
+    x = jnp.asarray(actor_id).astype(jnp.uint32)
+    h = x * jnp.uint32(0x9E3779B1)
+    h = (h ^ (h >> 15)) * jnp.uint32(0x85EBCA77)
+    h = (h ^ (h >> 13)) * jnp.uint32(0xC2B2AE3D)
+    h = h ^ (h >> 16)
+    ch = jnp.stack([(h >> 0) & 255, (h >> 8) & 255, (h >> 16) & 255], axis=-1)
+    col = (jnp.uint32(48) + (ch * jnp.uint32(207)) // jnp.uint32(255)).astype(jnp.uint8)
+    return jnp.where((x == 0)[..., None], jnp.uint8(0), col)
+
+
+def box_displacements(boxes_prev: Boxes3D, boxes_curr: Boxes3D) -> Float[Array, " B"]:
+    """Displacement (metres) of every box centre between t-1 and t (the same box order)."""
+    d = boxes_curr.box_to_world.translation - boxes_prev.box_to_world.translation
+    return jnp.sqrt(jnp.sum(d * d, axis=-1))
+
+
+def motion_segmentation(
+    box_index: Int[ArrayLike, "H W"],
+    displacement_m: Float[ArrayLike, " B"],
+    class_id: Int[ArrayLike, " B"] | None = None,
+    *,
+    threshold_m: float = MOTION_THRESHOLD_M,
+    include_ego: bool = False,
+) -> Bool[Array, "H W"]:
+    """Moving-object mask: pixels of an instance whose box moved more than ``threshold_m`` between
+    t-1 and t (`box_displacements`). The ego vehicle's own body (class 24) is excluded unless
+    ``include_ego`` (it is static relative to the cameras)."""
+    bi = jnp.asarray(box_index).astype(jnp.int32)
+    disp = jnp.asarray(displacement_m)
+    moving = disp > jnp.asarray(threshold_m, disp.dtype)
+    if class_id is not None and not include_ego:
+        moving = moving & (jnp.asarray(class_id) != CLASS_EGO)
+    if moving.shape[0] == 0:
+        return jnp.zeros(bi.shape, bool)
+    return (bi >= 0) & moving[jnp.clip(bi, 0, moving.shape[0] - 1)]

@@ -1,0 +1,96 @@
+"""Event files: CARLA's DVS dtype (``.npy``, t in nanoseconds), tonic-compatible ``x, y, t, p``
+arrays (``.npz`` with the time unit stored, t in microseconds), and the colour rendering PNG."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .._errors import ImageError
+from ._atomic import atomic_path
+from ._carla import DVS_EVENT_DTYPE
+from ._images import write_image
+
+#: tonic's event dtype (``tonic.io.make_structured_array``): int64 ``x, y, t, p``; t in µs.
+TONIC_EVENT_DTYPE = np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
+
+
+def carla_events(x, y, t_ns, polarity) -> np.ndarray:
+    """Structured array in CARLA's DVS dtype (`DVS_EVENT_DTYPE`: ``x, y`` uint16, ``t`` int64
+    nanoseconds, ``pol`` bool) from columns."""
+    x = np.asarray(x)
+    ev = np.empty(x.shape[0], DVS_EVENT_DTYPE)
+    if x.size and (x.min() < 0 or np.asarray(y).min() < 0 or x.max() > 65535 or np.asarray(y).max() > 65535):
+        raise ImageError("carla_events: pixel coordinates must lie in 0..65535")
+    ev["x"], ev["y"], ev["t"], ev["pol"] = x, np.asarray(y), np.asarray(t_ns, np.int64), np.asarray(polarity, bool)
+    return ev
+
+
+def carla_to_tonic(events: np.ndarray) -> np.ndarray:
+    """CARLA events (t in ns) -> tonic's ``x, y, t, p`` (t in **µs**, floor division; p 1 / 0)."""
+    ev = np.asarray(events)
+    out = np.empty(ev.shape[0], TONIC_EVENT_DTYPE)
+    out["x"], out["y"] = ev["x"], ev["y"]
+    out["t"] = np.floor_divide(ev["t"].astype(np.int64), 1000)
+    out["p"] = ev["pol"].astype(np.int64)
+    return out
+
+
+def write_events_npy(path: str | os.PathLike, events: np.ndarray) -> Path:
+    """Write events in CARLA's dtype (t in ns) as ``.npy`` (atomic; no pickle)."""
+    path = Path(path)
+    ev = np.asarray(events)
+    if ev.dtype != DVS_EVENT_DTYPE:
+        try:
+            ev = ev.astype(DVS_EVENT_DTYPE)
+        except (TypeError, ValueError) as e:
+            raise ImageError(f"{path}: events must have CARLA's DVS dtype {DVS_EVENT_DTYPE}, got {ev.dtype}") from e
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.save(fh, np.ascontiguousarray(ev), allow_pickle=False)
+    return path
+
+
+def read_events_npy(path: str | os.PathLike) -> np.ndarray:
+    """Read a CARLA-dtype events ``.npy`` (t in ns)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: file missing")
+    ev = np.load(path, allow_pickle=False)
+    if ev.dtype != DVS_EVENT_DTYPE:
+        raise ImageError(f"{path}: dtype {ev.dtype} is not CARLA's DVS dtype {DVS_EVENT_DTYPE}")
+    return ev
+
+
+def write_events_tonic(path: str | os.PathLike, events: np.ndarray, *, width: int, height: int) -> Path:
+    """Write CARLA events as a tonic-compatible ``.npz``: ``events`` (`TONIC_EVENT_DTYPE`, t in
+    µs), ``time_unit = "us"`` and ``sensor_size = (width, height, 2)``."""
+    path = Path(path)
+    ton = carla_to_tonic(events)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, events=ton, time_unit=np.asarray("us"), sensor_size=np.asarray([width, height, 2], np.int64))
+    return path
+
+
+def read_events_tonic(path: str | os.PathLike) -> tuple[np.ndarray, str, tuple[int, int, int]]:
+    """Read what `write_events_tonic` wrote: ``(events, time_unit, sensor_size)``."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: file missing")
+    with np.load(path, allow_pickle=False) as z:
+        for key in ("events", "time_unit", "sensor_size"):
+            if key not in z:
+                raise ImageError(f"{path}: field '{key}' missing")
+        return z["events"], str(z["time_unit"]), tuple(int(v) for v in z["sensor_size"])  # type: ignore[return-value]
+
+
+def write_events_color(path: str | os.PathLike, events: np.ndarray, *, width: int, height: int) -> Path:
+    """Write the colour rendering of events (`jaxfish.groundtruth.events_to_color`: blue positive,
+    red negative, white background) as an RGB PNG."""
+    from ..groundtruth import events_to_color
+
+    ev = np.asarray(events)
+    pol = ev["pol"] if "pol" in ev.dtype.names else ev["p"] > 0
+    img = events_to_color(ev["x"].astype(np.int32), ev["y"].astype(np.int32), pol, width=width, height=height)
+    return write_image(path, np.asarray(img))
