@@ -41,6 +41,8 @@ from ._lut import Lut, centre_sample, ring_positions
 
 #: Default relative agreement of the four depth taps below which inverse depth is interpolated.
 DEPTH_AGREEMENT_REL_TOL = 0.05
+#: Frame batches up to this size are unrolled (one kernel per frame in one program); larger ones loop.
+_UNROLL_FRAMES = 8
 #: CARLA's far/sky depth (metres).
 FAR_DEPTH_M = 1000.0
 
@@ -69,6 +71,15 @@ def _to_output(values: Array, dtype) -> Array:
     if dtype == jnp.bool_:
         return values >= 0.5
     return values.astype(dtype)
+
+
+def _over_frames(fn, frames: Array):
+    """``fn`` applied to each frame of ``(B, ...)``, one frame at a time (on CPU, XLA's batched
+    gather and gathers inside a loop run 2-4x slower than one unbatched gather per frame)."""
+    b = frames.shape[0]
+    if b <= _UNROLL_FRAMES:
+        return jnp.stack([fn(frames[i]) for i in range(b)])
+    return jax.lax.map(fn, frames)
 
 
 def _ring_own_edge(size: int) -> np.ndarray:
@@ -127,11 +138,10 @@ def resample_bilinear(
     """Bilinear resampling of images through ``lut`` (see the module rules); dtype preserved."""
     x = jnp.asarray(images)
     batch, _ = _split_source(x, lut, "resample_bilinear", channels=True)
-    if lut.pad:
-        x = pad_faces(x, lut)
     f, c = lut.num_faces, x.shape[-1]
     sw = lut.source_width + 2 * lut.pad
-    flat = x.reshape((-1, f * x.shape[-3] * sw, c))
+    sh = lut.source_height + 2 * lut.pad
+    frames = x.reshape((-1,) + lut.source_shape + (c,))
     wdt = _work_dtype(x, lut)
     idx = lut.tap_index
     fx = lut.tap_frac[..., 0:1].astype(wdt)
@@ -142,17 +152,20 @@ def resample_bilinear(
         w = lut.valid.astype(wdt)
         w = w / jnp.maximum(jnp.sum(w, axis=-1, keepdims=True), 1)
 
-    def one(fl):
+    def one(frame):
+        if lut.pad:  # pad each frame inside the loop: one frame's padded copy stays cache-friendly
+            frame = pad_faces(frame, lut)
+        fl = frame.reshape((f * sh * sw, c))
         g = lambda i: fl.at[i].get(mode="promise_in_bounds").astype(wdt)  # noqa: E731
         t00, t01, t10, t11 = g(idx), g(idx + 1), g(idx + sw), g(idx + sw + 1)
         top = t00 + (t01 - t00) * fx
         bot = t10 + (t11 - t10) * fx
         val = top + (bot - top) * fy  # (H, W, N, C)
         val = val[:, :, 0, :] if n == 1 else jnp.einsum("hwnc,hwn->hwc", val, w)
-        return jnp.where(valid_px[..., None], val, jnp.asarray(fill, wdt))
+        val = jnp.where(valid_px[..., None], val, jnp.asarray(fill, wdt))
+        return _to_output(val, x.dtype)
 
-    out = jax.vmap(one)(flat)
-    out = _to_output(out, x.dtype)
+    out = _over_frames(one, frames)
     return out.reshape(batch + out.shape[1:]), valid_px
 
 
@@ -216,7 +229,7 @@ def resample_nearest(
             val = _majority(val, valid[:, :, None, :], lut.supersample)
         return jnp.where(valid_px[..., None], val, jnp.asarray(fill, x.dtype))
 
-    out = jax.vmap(one)(flat)
+    out = _over_frames(one, flat)
     out = out.reshape(batch + out.shape[1:])
     return (out if has_c else out[..., 0]), valid_px
 
@@ -255,10 +268,9 @@ def resample_depth(
     fy = uv[..., 1] - y0.astype(wdt)
     i00 = (face * s_h + y0) * s_w + x0
     i00 = jnp.where(valid, i00, 0)
-    near_dx = (fx >= 0.5).astype(jnp.int32)
-    near_dy = (fy >= 0.5).astype(jnp.int32)
     far = jnp.asarray(far_m, wdt)
     one_plus = jnp.asarray(1.0 + rel_tol, wdt)
+    scale = scale.astype(wdt)
 
     def one(fl):
         g = lambda i: fl.at[i].get(mode="promise_in_bounds").astype(wdt)  # noqa: E731
@@ -272,10 +284,11 @@ def resample_depth(
         inv = i_top + (i_bot - i_top) * fy
         inv_ok = smooth & (inv > 0)
         z_interp = 1.0 / jnp.where(inv_ok, inv, 1.0)
-        z_near = g(i00 + near_dy * s_w + near_dx)
+        # nearest of the four taps (fractions reach [-0.5, 1.5] near face borders)
+        z_near = jnp.where(fy >= 0.5, jnp.where(fx >= 0.5, t11, t10), jnp.where(fx >= 0.5, t01, t00))
         z = jnp.where(inv_ok, z_interp, z_near)
-        rng = jnp.where(z >= far, far, z * scale.astype(wdt))
-        return jnp.where(valid, rng, jnp.asarray(fill, wdt))
+        rng = jnp.where(z >= far, far, z * scale)
+        return jnp.where(valid, rng, jnp.asarray(fill, wdt)).astype(x.dtype if x.dtype.itemsize >= 4 else wdt)
 
-    out = jax.vmap(one)(flat).astype(x.dtype if x.dtype.itemsize >= 4 else wdt)
+    out = _over_frames(one, flat)
     return out.reshape(batch + out.shape[1:]), valid
