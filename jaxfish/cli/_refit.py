@@ -1,0 +1,183 @@
+"""``jaxfish refit`` and ``jaxfish convert``: fit intrinsics to correspondences, convert lens models."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from ._app import app, console, fail
+
+
+def _write_json(path: Path, data: Any) -> None:
+    from ..io import atomic_write_text
+
+    atomic_write_text(path, json.dumps(data, indent=2) + "\n")
+
+
+def _pose_dict(pose) -> dict[str, list[float]]:
+    import numpy as np
+
+    return {"quaternion": [float(x) for x in np.asarray(pose.as_quaternion_xyzw())],
+            "translation": [float(x) for x in np.asarray(pose.translation)]}
+
+
+def _initial_camera(model: str, width: int, height: int, focal: float | None):
+    import numpy as np
+
+    from ..refit import camera_from_intrinsics, canonical_model_name
+
+    model = canonical_model_name(model)
+    f = focal if focal is not None else width / math.pi  # equidistant lens spanning 180 degrees
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    vec = {
+        "radial_poly": [f, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+        "kannala_brandt": [f, f, cx, cy, 0.0, 0.0, 0.0, 0.0],
+        "unified": [f, f, cx, cy, 0.5],
+        "extended_unified": [f, f, cx, cy, 0.5, 1.0],
+        "double_sphere": [f, f, cx, cy, 0.0, 0.5],
+    }[model]
+    return camera_from_intrinsics(model, np.asarray(vec), width=width, height=height, dtype=np.float64)
+
+
+@app.command()
+def refit(
+    correspondences: Path = typer.Argument(..., help="Correspondences JSON (format: docs/refit.md)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output calibration JSON."),
+    calibration: Path | None = typer.Option(None, "--calibration", "-c", help="Initial calibration JSON (any model)."),
+    model: str | None = typer.Option(None, "--model", "-m", help="Lens model to fit (default: the initial calibration's; "
+                                     "a different one is converted first)."),
+    width: int | None = typer.Option(None, help="Image width (without --calibration)."),
+    height: int | None = typer.Option(None, help="Image height (without --calibration)."),
+    focal: float | None = typer.Option(None, help="Initial focal length, pixels per radian (without --calibration)."),
+    name: str = typer.Option("camera", help="Camera name written without --calibration."),
+    fix: list[str] = typer.Option([], "--fix", help="Parameter to hold fixed (repeatable), e.g. --fix k4."),
+    loss: str = typer.Option("linear", help="Robust loss: linear, huber, cauchy, soft_l1."),
+    loss_scale: float = typer.Option(1.0, help="Robust loss scale in pixels."),
+    fit_pose: bool = typer.Option(True, "--fit-pose/--no-fit-pose", help="Also fit the pose(s)."),
+    report: Path | None = typer.Option(None, "--report", "-r", help="Report JSON (residuals, covariance, poses)."),
+) -> None:
+    """Fit a lens model's intrinsics (and poses) to 2D-3D correspondences; write the calibration and a report."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    from ..calibration import Calibration
+    from ..io._correspondences import load_camera_calibration, load_correspondences, save_camera_calibration
+    from ..refit import Correspondences, canonical_model_name, convert_camera
+    from ..refit import refit as run_refit
+    from ..transforms import Pose
+
+    corr, frame, view_names = load_correspondences(correspondences)
+    if calibration is not None:
+        calib = load_camera_calibration(calibration, dtype=np.float64)
+        camera, mount = calib.camera, calib.camera_to_vehicle
+        name = calib.name
+        if model is not None and canonical_model_name(model) != canonical_model_name(camera):
+            camera = convert_camera(camera, model).camera
+    else:
+        if model is None or width is None or height is None:
+            raise fail("without --calibration, give --model, --width and --height")
+        camera = _initial_camera(model, width, height, focal)
+        mount = Pose.identity(dtype=np.float64)
+    poses = None
+    pose_fitted = fit_pose and frame != "camera"
+    if frame == "vehicle":  # one mounting pose shared by every view
+        corr = Correspondences(corr.points, corr.pixels, None, corr.weight, dtype=np.float64)
+        if calibration is not None:
+            poses = mount.inverse()
+    try:
+        result = run_refit(camera, corr, poses=poses, fit_pose=pose_fitted, fixed=fix, loss=loss,
+                           loss_scale_px=loss_scale)
+    except ValueError as e:
+        raise fail(f"{correspondences}: {e}") from None
+    if frame == "vehicle" and pose_fitted:
+        mount = Pose(result.poses.rotation_matrix[0], result.poses.translation[0]).inverse()
+    save_camera_calibration(Calibration(name, result.camera, mount), out)
+    names = view_names if frame != "vehicle" else ["vehicle"]
+    std = dict(zip(result.parameter_names, np.asarray(result.standard_deviations).tolist(), strict=True))
+    pnames = [n for n in result.parameter_names if not n.startswith("view")]
+    from ..refit import intrinsics_vector, parameter_names
+
+    values = dict(zip(parameter_names(result.camera), np.asarray(intrinsics_vector(result.camera)).tolist(),
+                      strict=True))
+    summary = {
+        "model": canonical_model_name(result.camera),
+        "frame": frame,
+        "num_correspondences": int(np.sum(np.asarray(corr.weight) > 0)),
+        "rms_px": float(result.rms_px),
+        "per_view_rms_px": dict(zip(names, np.asarray(result.per_view_rms_px).tolist(), strict=True)),
+        "num_steps": int(result.num_steps),
+        "converged": bool(result.converged),
+        "loss": loss, "loss_scale_px": loss_scale,
+        "parameters": {k: {"value": v, "std": std.get(k), "fixed": k not in std} for k, v in values.items()},
+    }
+    console.print(
+        f"refit {summary['model']}: rms {summary['rms_px']:.4f} px over {summary['num_correspondences']} points, "
+        f"{summary['num_steps']} steps, converged={summary['converged']}", highlight=False)
+    for k in pnames:
+        console.print(f"  {k} = {values[k]:.6g} ± {std[k]:.2g}", highlight=False)
+    if report is not None:
+        view = np.asarray(corr.view)
+        res = np.asarray(result.residuals)
+        full = dict(summary)
+        full["poses_world_to_camera"] = {
+            n: _pose_dict(Pose(result.poses.rotation_matrix[i], result.poses.translation[i]))
+            for i, n in enumerate(names)}
+        full["residuals_px"] = {n: res[view == i].tolist() for i, n in enumerate(names)}
+        full["covariance"] = {"names": list(result.parameter_names),
+                              "matrix": np.asarray(result.covariance).tolist()}
+        _write_json(report, full)
+    console.print(f"wrote {out}", highlight=False)
+    if not bool(result.converged):
+        raise typer.Exit(1)
+
+
+@app.command()
+def convert(
+    calibration: Path = typer.Argument(..., help="Calibration JSON of any lens model."),
+    to: str = typer.Option(..., "--to", "-t", help="Target model: radial_poly (woodscape), kannala_brandt (kb), "
+                           "unified (ucm), extended_unified (eucm), double_sphere (ds)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output calibration JSON."),
+    fov: str = typer.Option("lens", help="Sample rays up to the source's theta_max ('lens') or the image's ('image')."),
+    theta_max_deg: float | None = typer.Option(None, help="Sample rays up to this incidence angle instead (degrees)."),
+    report: Path | None = typer.Option(None, "--report", "-r", help="Error report JSON."),
+) -> None:
+    """Convert a calibration to another lens model, reporting the max and RMS reprojection difference."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    from ..calibration import Calibration
+    from ..io._correspondences import load_camera_calibration, save_camera_calibration
+    from ..refit import canonical_model_name, convert_camera
+
+    calib = load_camera_calibration(calibration, dtype=np.float64)
+    try:
+        target = canonical_model_name(to)
+        result = convert_camera(calib.camera, target, fov=fov,
+                                theta_max=None if theta_max_deg is None else math.radians(theta_max_deg))
+    except ValueError as e:
+        raise fail(str(e)) from None
+    save_camera_calibration(Calibration(calib.name, result.camera, calib.camera_to_vehicle), out)
+    summary = {
+        "source_model": canonical_model_name(calib.camera), "target_model": target,
+        "max_px": float(result.max_px), "rms_px": float(result.rms_px),
+        "max_px_in_image": float(result.max_px_in_image), "rms_px_in_image": float(result.rms_px_in_image),
+        "theta_max_deg": math.degrees(float(result.theta_max)), "num_samples": int(result.num_samples),
+        "num_target_invalid": int(result.num_target_invalid), "num_steps": int(result.num_steps),
+        "converged": bool(result.converged),
+    }
+    console.print(
+        f"{summary['source_model']} -> {target} up to {summary['theta_max_deg']:.1f} deg: max {summary['max_px']:.4g} px, "
+        f"rms {summary['rms_px']:.4g} px (inside the image: max {summary['max_px_in_image']:.4g}, "
+        f"rms {summary['rms_px_in_image']:.4g}); {summary['num_target_invalid']} of {summary['num_samples']} rays "
+        f"outside the target's domain", highlight=False)
+    if report is not None:
+        _write_json(report, summary)
+    console.print(f"wrote {out}", highlight=False)

@@ -1,0 +1,170 @@
+"""The intrinsic parameters of every jaxfish lens model: names, vectors, and plain-dict form."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ..cameras import AbstractCamera, WoodScapeFisheye
+from ..cameras._double_sphere import DoubleSphere
+from ..cameras._kannala_brandt import KannalaBrandt
+from ..cameras._unified import ExtendedUnifiedCamera, UnifiedCamera
+
+#: Model names (the ``intrinsic.model`` value of a calibration JSON) and their camera classes.
+MODEL_CLASSES: dict[str, type[AbstractCamera]] = {
+    "radial_poly": WoodScapeFisheye,
+    "kannala_brandt": KannalaBrandt,
+    "unified": UnifiedCamera,
+    "extended_unified": ExtendedUnifiedCamera,
+    "double_sphere": DoubleSphere,
+}
+
+#: Intrinsic parameter names of each model, in vector order (pixels for k of radial_poly,
+#: fx, fy, cx, cy, cx_offset, cy_offset; dimensionless otherwise).
+PARAMETER_NAMES: dict[str, tuple[str, ...]] = {
+    "radial_poly": ("k1", "k2", "k3", "k4", "cx_offset", "cy_offset", "aspect_ratio"),
+    "kannala_brandt": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
+    "unified": ("fx", "fy", "cx", "cy", "alpha"),
+    "extended_unified": ("fx", "fy", "cx", "cy", "alpha", "beta"),
+    "double_sphere": ("fx", "fy", "cx", "cy", "xi", "alpha"),
+}
+
+#: Aliases accepted wherever a model name is expected.
+MODEL_ALIASES: dict[str, str] = {
+    "woodscape": "radial_poly",
+    "kb": "kannala_brandt",
+    "opencv_fisheye": "kannala_brandt",
+    "ucm": "unified",
+    "mei": "unified",
+    "eucm": "extended_unified",
+    "ds": "double_sphere",
+}
+
+
+def canonical_model_name(model: str | type | AbstractCamera) -> str:
+    """The canonical model name of a name, alias, camera class or camera instance."""
+    if isinstance(model, AbstractCamera):
+        model = type(model)
+    if isinstance(model, type):
+        for name, cls in MODEL_CLASSES.items():
+            if model is cls:
+                return name
+        raise ValueError(f"no lens model is registered for camera class {model.__name__}")
+    key = str(model).strip().lower().replace("-", "_")
+    key = MODEL_ALIASES.get(key, key)
+    if key not in MODEL_CLASSES:
+        known = ", ".join(sorted(set(MODEL_CLASSES) | set(MODEL_ALIASES)))
+        raise ValueError(f"unknown lens model {model!r} (known: {known})")
+    return key
+
+
+def parameter_names(camera: AbstractCamera | str) -> tuple[str, ...]:
+    """Names of the intrinsic parameters of a camera (or model name), in `intrinsics_vector` order."""
+    return PARAMETER_NAMES[canonical_model_name(camera)]
+
+
+def intrinsics_vector(camera: AbstractCamera) -> Float[Array, " P"]:
+    """The intrinsic parameters of ``camera`` as one vector (order: `parameter_names`)."""
+    name = canonical_model_name(camera)
+    c: Any = camera
+    if name == "radial_poly":
+        parts = [c.k, c.cx_offset[None], c.cy_offset[None], c.aspect_ratio[None]]
+    elif name == "kannala_brandt":
+        parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy]), c.k]
+    elif name == "unified":
+        parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy, c.alpha])]
+    elif name == "extended_unified":
+        parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy, c.alpha, c.beta])]
+    else:
+        parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy, c.xi, c.alpha])]
+    return jnp.concatenate(parts)
+
+
+def with_intrinsics(camera: AbstractCamera, vector: Float[Array, " P"]) -> AbstractCamera:
+    """A copy of ``camera`` whose intrinsic parameters are ``vector`` (differentiable, jit-safe)."""
+    name = canonical_model_name(camera)
+    n = len(PARAMETER_NAMES[name])
+    if vector.shape != (n,):
+        raise ValueError(f"with_intrinsics: a {name} camera has {n} parameters, got a vector of shape {vector.shape}")
+    if name == "radial_poly":
+        return eqx.tree_at(lambda c: (c.k, c.cx_offset, c.cy_offset, c.aspect_ratio), camera,
+                           (vector[0:4], vector[4], vector[5], vector[6]))
+    if name == "kannala_brandt":
+        return eqx.tree_at(lambda c: (c.fx, c.fy, c.cx, c.cy, c.k), camera,
+                           (vector[0], vector[1], vector[2], vector[3], vector[4:8]))
+    if name == "unified":
+        return eqx.tree_at(lambda c: (c.fx, c.fy, c.cx, c.cy, c.alpha), camera, tuple(vector[i] for i in range(5)))
+    if name == "extended_unified":
+        return eqx.tree_at(lambda c: (c.fx, c.fy, c.cx, c.cy, c.alpha, c.beta), camera,
+                           tuple(vector[i] for i in range(6)))
+    return eqx.tree_at(lambda c: (c.fx, c.fy, c.cx, c.cy, c.xi, c.alpha), camera, tuple(vector[i] for i in range(6)))
+
+
+def camera_from_intrinsics(model: str, vector, *, width: int, height: int, dtype=None) -> AbstractCamera:
+    """A new camera of ``model`` from an intrinsics vector (order: `parameter_names`)."""
+    name = canonical_model_name(model)
+    v = jnp.asarray(vector, dtype=dtype)
+    if v.shape != (len(PARAMETER_NAMES[name]),):
+        raise ValueError(f"camera_from_intrinsics: {name} needs {len(PARAMETER_NAMES[name])} parameters, got {v.shape}")
+    if name == "radial_poly":
+        return WoodScapeFisheye(v[0:4], width=width, height=height, cx_offset=v[4], cy_offset=v[5],
+                                aspect_ratio=v[6], dtype=v.dtype)
+    if name == "kannala_brandt":
+        return KannalaBrandt(v[0], v[1], v[2], v[3], v[4:8], width=width, height=height, dtype=v.dtype)
+    return MODEL_CLASSES[name](*[v[i] for i in range(v.shape[0])], width=width, height=height, dtype=v.dtype)
+
+
+def intrinsics_to_dict(camera: AbstractCamera) -> dict[str, Any]:
+    """The ``"intrinsic"`` object of a calibration JSON for any model.
+
+    ``{"model": name, "width": W, "height": H, <parameter>: value, ...}``; for ``radial_poly``
+    exactly WoodScape's keys (plus ``"poly_order": 4``), so WoodScape tools read it.
+    """
+    name = canonical_model_name(camera)
+    values = [float(x) for x in jnp.asarray(intrinsics_vector(camera))]
+    out: dict[str, Any] = {"model": name, "width": float(camera.width), "height": float(camera.height)}
+    out.update(zip(PARAMETER_NAMES[name], values, strict=True))
+    if name == "radial_poly":
+        out["poly_order"] = 4
+    return dict(sorted(out.items()))
+
+
+def intrinsics_from_dict(data: Mapping[str, Any], *, source: str = "<intrinsic>", dtype=None) -> AbstractCamera:
+    """Inverse of `intrinsics_to_dict`; every problem raises `ValueError` naming ``source`` and the field."""
+    if not isinstance(data, Mapping):
+        raise ValueError(f"{source}: field 'intrinsic': expected an object, got {type(data).__name__}")
+    if "model" not in data:
+        raise ValueError(f"{source}: field 'intrinsic.model': missing")
+    try:
+        name = canonical_model_name(data["model"])
+    except ValueError as e:
+        raise ValueError(f"{source}: field 'intrinsic.model': {e}") from None
+    keys = set(PARAMETER_NAMES[name]) | {"model", "width", "height"}
+    if name == "radial_poly":
+        keys.add("poly_order")
+    for key in sorted(keys - {"poly_order"}):
+        if key not in data:
+            raise ValueError(f"{source}: field 'intrinsic.{key}': missing (model {name})")
+    extra = sorted(set(data) - keys)
+    if extra:
+        raise ValueError(f"{source}: field 'intrinsic.{extra[0]}': unexpected key for model {name}")
+    values = {}
+    for key in keys - {"model"}:
+        if key not in data:
+            continue
+        val = data[key]
+        if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
+            raise ValueError(f"{source}: field 'intrinsic.{key}': expected a finite number, got {val!r}")
+        values[key] = float(val)
+    for key in ("width", "height"):
+        if values[key] <= 0 or values[key] != int(values[key]):
+            raise ValueError(f"{source}: field 'intrinsic.{key}': expected a positive whole number, got {data[key]!r}")
+    if name == "radial_poly" and values.get("poly_order", 4) != 4:
+        raise ValueError(f"{source}: field 'intrinsic.poly_order': only 4 is supported, got {data['poly_order']!r}")
+    vec = [values[k] for k in PARAMETER_NAMES[name]]
+    return camera_from_intrinsics(name, vec, width=int(values["width"]), height=int(values["height"]), dtype=dtype)

@@ -1,0 +1,76 @@
+"""convert_camera: exact WoodScape <-> Kannala-Brandt conversions, real lenses, other models."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import jaxfish as jf
+from jaxfish.refit import convert_camera, intrinsics_from_dict, intrinsics_to_dict
+from tests import tolerances as tol
+
+
+def _woodscape_odd() -> jf.WoodScapeFisheye:
+    """A WoodScape lens with k2 = k4 = 0: exactly a Kannala-Brandt lens."""
+    return jf.WoodScapeFisheye([331.0, 0.0, -21.5, 0.0], width=1280, height=966, cx_offset=2.25, cy_offset=-1.5,
+                               aspect_ratio=1.003)
+
+
+def test_woodscape_with_odd_terms_converts_exactly_to_kb_and_back():
+    ws = _woodscape_odd()
+    res = convert_camera(ws, "kannala_brandt")
+    kb = res.camera
+    assert isinstance(kb, jf.KannalaBrandt) and bool(res.converged)
+    assert float(res.max_px) < tol.CONVERT_EXACT_PX
+    assert int(res.num_target_invalid) == 0
+    # Closed form: fx = k1, fy = k1 * aspect, kb_k1 = k3 / k1, other coefficients 0.
+    np.testing.assert_allclose([float(kb.fx), float(kb.fy)], [331.0, 331.0 * 1.003], rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(kb.k), [-21.5 / 331.0, 0.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(kb.principal_point), np.asarray(ws.principal_point), atol=1e-7)
+    # rho'(theta) = 0 at sqrt(331 / 64.5) rad: the lens domain ends there (minus margins).
+    assert float(res.theta_max) == pytest.approx(math.sqrt(331.0 / 64.5) - 2e-3, abs=1e-9)
+    back = convert_camera(kb, "woodscape")
+    assert float(back.max_px) < tol.CONVERT_EXACT_PX
+    np.testing.assert_allclose(np.asarray(back.camera.k), np.asarray(ws.k), rtol=1e-9, atol=1e-6)
+    assert float(back.camera.aspect_ratio) == pytest.approx(1.003, rel=1e-9)
+
+
+def test_real_calibration_to_kb_and_back(real_calibration_path):
+    ws = jf.load_calibration(real_calibration_path).camera
+    res = convert_camera(ws, "kb")
+    assert bool(res.converged) and int(res.num_target_invalid) == 0
+    # An odd polynomial approximates the real even+odd one to about a pixel over the whole lens.
+    assert float(res.rms_px) < 1.0 and float(res.max_px) < 3.0
+    image = convert_camera(ws, "kb", fov="image")
+    assert float(image.theta_max) < float(res.theta_max)
+    assert float(image.max_px) <= float(res.max_px_in_image) + 1e-9
+    back = convert_camera(res.camera, "radial_poly")
+    assert float(back.rms_px) < 1.0
+
+
+def test_other_models_exact_where_nested():
+    """UCM is DS with xi = 0 (and EUCM with beta = 1): those conversions are exact."""
+    ucm = jf.UnifiedCamera(290.0, 291.0, 640.5, 481.0, 0.58, width=1280, height=966)
+    ds = convert_camera(ucm, "ds", theta_max=math.radians(120))
+    assert float(ds.max_px) < tol.CONVERT_EXACT_PX * 10
+    # xi and alpha nearly trade off near xi = 0: the projections agree, the parameters to ~1e-4.
+    assert abs(float(ds.camera.xi)) < 1e-3 and float(ds.camera.alpha) == pytest.approx(0.58, abs=1e-3)
+    kb = convert_camera(ucm, "kb", theta_max=math.radians(120), fixed=("k4",))
+    assert float(kb.camera.k[3]) == 0.0 and float(kb.rms_px) < 1.0
+
+
+def test_intrinsics_dict_roundtrip_and_errors():
+    for cam in (_woodscape_odd(), jf.KannalaBrandt(300.0, 301.0, 640.0, 480.0, (0.01, 0.0, 0.0, 0.0), width=1280, height=966),
+                jf.DoubleSphere(156.0, 155.8, 639.5, 482.3, -0.18, 0.59, width=1280, height=966),
+                jf.ExtendedUnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.63, 1.15, width=1280, height=966)):
+        d = intrinsics_to_dict(cam)
+        again = intrinsics_from_dict(d)
+        assert type(again) is type(cam) and intrinsics_to_dict(again) == d
+    with pytest.raises(ValueError, match=r"intrinsic\.cx': missing"):
+        intrinsics_from_dict({"model": "kb", "width": 10, "height": 10}, source="x.json")
+    with pytest.raises(ValueError, match="unknown lens model"):
+        intrinsics_from_dict({"model": "fisheye624", "width": 10, "height": 10})
+    with pytest.raises(ValueError, match="fov"):
+        convert_camera(_woodscape_odd(), "kb", fov="sensor")
