@@ -224,29 +224,25 @@ def _slab(o, d, h):
 
 
 def _box_t(o, d, center, cos, sin, h, active):
-    """(C, B) entry distances, computed per component (no minor-axis stacking: it vectorises)."""
-    c, s = cos[None], sin[None]
-    rx = o[:, 0:1] - center[None, :, 0]
-    ry = o[:, 1:2] - center[None, :, 1]
-    rz = o[:, 2:3] - center[None, :, 2]
-    ox, oy = c * rx + s * ry, -s * rx + c * ry
-    dx, dy = c * d[:, 0:1] + s * d[:, 1:2], -s * d[:, 0:1] + c * d[:, 1:2]
-    ax, bx = _slab(ox, dx, h[None, :, 0])
-    ay, by = _slab(oy, dy, h[None, :, 1])
-    az, bz = _slab(rz, jnp.broadcast_to(d[:, 2:3], rz.shape), h[None, :, 2])
+    """Entry distances ``(B,)`` of **one** ray ``o, d (3,)`` into ``B`` boxes (vmapped over rays);
+    per component, no minor-axis stacking (it vectorises)."""
+    rx, ry, rz = o[0] - center[:, 0], o[1] - center[:, 1], o[2] - center[:, 2]
+    ox, oy = cos * rx + sin * ry, -sin * rx + cos * ry
+    dx, dy = cos * d[0] + sin * d[1], -sin * d[0] + cos * d[1]
+    ax, bx = _slab(ox, dx, h[:, 0])
+    ay, by = _slab(oy, dy, h[:, 1])
+    az, bz = _slab(rz, jnp.broadcast_to(d[2], rz.shape), h[:, 2])
     t_near = jnp.maximum(jnp.maximum(ax, ay), az)
     t_far = jnp.minimum(jnp.minimum(bx, by), bz)
-    ok = (t_near <= t_far) & (t_near > _T_MIN) & active[None]
+    ok = (t_near <= t_far) & (t_near > _T_MIN) & active
     return jnp.where(ok, t_near, jnp.inf)
 
 
 def _capsule_t(o, d, center, hl, r, active):
-    """(C, K) entry distances of unit rays into the upright capsules (yaw does not matter)."""
-    ox = o[:, 0:1] - center[None, :, 0]
-    oy = o[:, 1:2] - center[None, :, 1]
-    oz = o[:, 2:3] - center[None, :, 2]
-    dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
-    hl, r = hl[None], r[None]
+    """Entry distances ``(K,)`` of **one** unit ray into ``K`` upright capsules (vmapped over rays;
+    the capsules' yaw does not matter)."""
+    ox, oy, oz = o[0] - center[:, 0], o[1] - center[:, 1], o[2] - center[:, 2]
+    dx, dy, dz = d[0], d[1], d[2]
     a = dx * dx + dy * dy
     b = ox * dx + oy * dy
     c = ox * ox + oy * oy - r * r
@@ -258,7 +254,7 @@ def _capsule_t(o, d, center, hl, r, active):
     t_top = _sphere_entry2(b + (oz - hl) * dz, c + (oz - hl) * (oz - hl))
     t_bot = _sphere_entry2(b + (oz + hl) * dz, c + (oz + hl) * (oz + hl))
     t = jnp.minimum(t_cyl, jnp.minimum(t_top, t_bot))
-    return jnp.where(active[None], t, jnp.inf)
+    return jnp.where(active, t, jnp.inf)
 
 
 def _sphere_entry2(b, c):
@@ -276,10 +272,12 @@ def _nearest(scene: Scene, posed: _Posed, o, d, box_idx, cap_idx):
     """Nearest hit among the ground and the given primitives: ``(t, global index)`` with index 0
     the ground, ``1..B`` boxes, ``B+1..`` capsules."""
     n_box = scene.box_center.shape[0]
-    t_box = _box_t(o, d, posed.box_center[box_idx], posed.box_cos[box_idx], posed.box_sin[box_idx],
-                   scene.box_half_extent[box_idx], scene.box_active[box_idx])
-    t_cap = _capsule_t(o, d, posed.cap_center[cap_idx], scene.capsule_half_length[cap_idx],
-                       scene.capsule_radius[cap_idx], scene.capsule_active[cap_idx])
+    boxes = (posed.box_center[box_idx], posed.box_cos[box_idx], posed.box_sin[box_idx],
+             scene.box_half_extent[box_idx], scene.box_active[box_idx])
+    caps = (posed.cap_center[cap_idx], scene.capsule_half_length[cap_idx], scene.capsule_radius[cap_idx],
+            scene.capsule_active[cap_idx])
+    t_box = jax.vmap(_box_t, in_axes=(0, 0) + (None,) * 5)(o, d, *boxes)  # (C, B)
+    t_cap = jax.vmap(_capsule_t, in_axes=(0, 0) + (None,) * 4)(o, d, *caps)  # (C, K)
     t_gnd = ray_ground_distance(o, d)
     t_all = jnp.concatenate([t_gnd[:, None], t_box, t_cap], axis=1)
     k = jnp.argmin(t_all, axis=1)
