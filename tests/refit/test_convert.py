@@ -57,7 +57,9 @@ def test_other_models_exact_where_nested():
     assert float(ds.max_px) < tol.CONVERT_EXACT_PX * 10
     # xi and alpha nearly trade off near xi = 0: the projections agree, the parameters to ~1e-4.
     assert abs(float(ds.camera.xi)) < 1e-3 and float(ds.camera.alpha) == pytest.approx(0.58, abs=1e-3)
-    kb = convert_camera(ucm, "kb", theta_max=math.radians(120), fixed=("k4",))
+    # A fixed parameter keeps its initial value (here: an explicit initial camera with k4 = 0).
+    start = jf.KannalaBrandt(290.0, 291.0, 640.5, 481.0, (0.0, 0.0, 0.0, 0.0), width=1280, height=966)
+    kb = convert_camera(ucm, start, theta_max=math.radians(120), fixed=("k4",))
     assert float(kb.camera.k[3]) == 0.0 and float(kb.rms_px) < 1.0
 
 
