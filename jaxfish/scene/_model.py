@@ -80,6 +80,29 @@ class Scene(eqx.Module):
     sun_direction: Float[Array, " 3"]
     dt_s: float = eqx.field(static=True, default=0.1)
 
+    def __check_init__(self):
+        groups = {
+            "object": ("object_location", "object_yaw_deg", "object_actor_id"),
+            "box": ("box_object", "box_center", "box_half_extent", "box_yaw_deg", "box_tag", "box_albedo",
+                    "box_texture", "box_texture_scale", "box_active"),
+            "capsule": ("capsule_object", "capsule_center", "capsule_half_length", "capsule_radius", "capsule_tag",
+                        "capsule_albedo", "capsule_texture", "capsule_texture_scale", "capsule_active"),
+        }
+        for group, names in groups.items():
+            counts = {}
+            for name in names:
+                x = getattr(self, name)
+                if not hasattr(x, "shape"):
+                    return  # a partitioned / transformed pytree, not a constructed scene
+                axis = 1 if name in ("object_location", "object_yaw_deg") else 0
+                counts[name] = x.shape[axis] if x.ndim > axis else None
+            if len(set(counts.values())) != 1:
+                raise ValueError(f"Scene: the {group} fields disagree on their count: {counts}")
+        if self.object_location.shape[:1] != (2,) or self.object_yaw_deg.shape[:1] != (2,):
+            raise ValueError("Scene: object_location and object_yaw_deg need a leading axis of 2 (t-1, t)")
+        if self.dt_s <= 0:
+            raise ValueError(f"Scene: dt_s must be positive, got {self.dt_s}")
+
     @property
     def num_objects(self) -> int:
         """Number of objects ``O`` (static world, ego, actors)."""

@@ -178,3 +178,25 @@ def test_imu_and_gnss():
     lat, _, _ = location_to_geo((0.0, -1000.0, 5.0))  # -y is north
     assert lat > 0
     assert simulate_gnss(f)["altitude"] == f.ego.location[2]
+
+
+def test_invalid_inputs_are_rejected(street):
+    import equinox as eqx
+
+    from jaxfish.scene import CaptureConfig, Scene
+
+    with pytest.raises(ValueError, match="frame"):
+        generate_street(0, frame=-1)
+    with pytest.raises(ValueError, match="dt_s"):
+        generate_street(0, dt_s=0.0)
+    with pytest.raises(ValueError, match="face_size"):
+        CaptureConfig(face_size=0)
+    with pytest.raises(ValueError, match="dvs_threshold"):
+        CaptureConfig(dvs_threshold=0.0)
+    fields = {f: getattr(street.scene, f) for f in street.scene.__dataclass_fields__}
+    fields["box_tag"] = fields["box_tag"][:-1]
+    with pytest.raises(ValueError, match="box fields disagree"):
+        Scene(**fields)
+    # a scene passes through jit and pytree surgery untouched
+    moved = eqx.tree_at(lambda s: s.object_location, street.scene, street.scene.object_location + 1.0)
+    assert moved.num_objects == street.scene.num_objects
