@@ -1,0 +1,78 @@
+"""``jaxfish refit`` and ``jaxfish convert`` end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import jaxfish as jf
+from jaxfish.cli import app
+from jaxfish.io._correspondences import (
+    CorrespondenceError,
+    load_camera_calibration,
+    load_correspondences,
+    save_camera_calibration,
+    save_correspondences,
+)
+from tests.conftest import shared_path
+from tests.refit.synthetic import initial_camera, scene
+
+
+def test_convert_to_kb_and_back(tmp_path):
+    src = shared_path("calibration/woodscape/FV.json")
+    runner = CliRunner()
+    result = runner.invoke(app, ["convert", str(src), "--to", "kb", "-o", str(tmp_path / "kb.json"),
+                                 "-r", str(tmp_path / "kb_report.json")])
+    assert result.exit_code == 0, result.output
+    data = json.loads((tmp_path / "kb.json").read_text())
+    assert data["intrinsic"]["model"] == "kannala_brandt"
+    report = json.loads((tmp_path / "kb_report.json").read_text())
+    assert report["converged"] and report["rms_px"] < 1.0 and report["num_target_invalid"] == 0
+    assert report["max_px"] >= report["rms_px"] > 0
+    original = jf.load_calibration(src)
+    kb = load_camera_calibration(tmp_path / "kb.json")
+    np.testing.assert_allclose(np.asarray(kb.camera_to_vehicle.translation),
+                               np.asarray(original.camera_to_vehicle.translation), atol=1e-12)
+    result = runner.invoke(app, ["convert", str(tmp_path / "kb.json"), "--to", "woodscape", "-o",
+                                 str(tmp_path / "ws.json")])
+    assert result.exit_code == 0, result.output
+    back = jf.load_calibration(tmp_path / "ws.json")  # WoodScape's own loader reads it
+    assert back.name == original.name
+    assert abs(float(back.camera.k[0]) - float(original.camera.k[0])) < 0.05 * float(original.camera.k[0])
+
+
+def test_refit_from_board_correspondences(tmp_path):
+    corr, truth, _, _ = scene(noise_px=0.2)
+    save_correspondences(corr, tmp_path / "corners.json", frame="board")
+    loaded, frame, names = load_correspondences(tmp_path / "corners.json")
+    assert frame == "board" and names == [f"view{i}" for i in range(5)] and loaded.size == corr.size
+    init = jf.Calibration("FV", initial_camera(), jf.Pose.identity(dtype=np.float64))
+    save_camera_calibration(init, tmp_path / "init.json")
+    result = CliRunner().invoke(app, ["refit", str(tmp_path / "corners.json"), "-c", str(tmp_path / "init.json"),
+                                      "-o", str(tmp_path / "fit.json"), "-r", str(tmp_path / "report.json")])
+    assert result.exit_code == 0, result.output
+    fit = jf.load_calibration(tmp_path / "fit.json")
+    np.testing.assert_allclose(float(fit.camera.k[0]), float(truth.k[0]), rtol=2e-3)
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["converged"] and report["rms_px"] < 0.5
+    assert set(report["per_view_rms_px"]) == set(names)
+    assert report["parameters"]["k1"]["std"] > 0 and not report["parameters"]["k1"]["fixed"]
+    assert len(report["residuals_px"]["view0"]) == int(np.sum(np.asarray(corr.view) == 0))
+    n = len(report["covariance"]["names"])
+    assert np.asarray(report["covariance"]["matrix"]).shape == (n, n)
+
+
+def test_refit_input_errors(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"frame": "board", "views": [{"points": [[0, 0, 1]], "pixels": [[1, 2, 3]]}]}))
+    with pytest.raises(CorrespondenceError, match=r"bad\.json: field 'views\[0\]\.pixels'"):
+        load_correspondences(bad)
+    result = CliRunner().invoke(app, ["refit", str(bad), "-o", str(tmp_path / "x.json")])
+    assert result.exit_code != 0 and isinstance(result.exception, CorrespondenceError)
+    good = tmp_path / "good.json"
+    good.write_text(json.dumps({"frame": "camera", "views": [{"points": [[0, 0, 1]], "pixels": [[1, 2]]}]}))
+    result = CliRunner().invoke(app, ["refit", str(good), "-o", str(tmp_path / "x.json")])
+    assert result.exit_code == 2 and "--model" in result.output
