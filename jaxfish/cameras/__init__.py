@@ -1,9 +1,13 @@
 """Camera models: immutable pytrees with pure ``project`` / ``unproject``."""
 
 from ._base import AbstractCamera as AbstractCamera
+from ._double_sphere import DoubleSphere as DoubleSphere
 from ._equirectangular import Cylindrical as Cylindrical
 from ._equirectangular import Equirectangular as Equirectangular
+from ._kannala_brandt import KannalaBrandt as KannalaBrandt
 from ._orthographic import Orthographic as Orthographic
 from ._pinhole import Pinhole as Pinhole
+from ._unified import ExtendedUnifiedCamera as ExtendedUnifiedCamera
+from ._unified import UnifiedCamera as UnifiedCamera
 from ._woodscape import THETA_MAX_MARGIN_RAD as THETA_MAX_MARGIN_RAD
 from ._woodscape import WoodScapeFisheye as WoodScapeFisheye

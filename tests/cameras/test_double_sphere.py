@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import jaxfish as jf
+import jaxfish.cameras as jc
 from tests import tolerances as tol
 from tests.helpers import central_difference_jacobian, three_ways
 
@@ -40,9 +40,9 @@ def _reference(cam, p):
 
 CAMERAS = {
     # Usenko et al.'s fitted EuRoC/BF2M2020S23 values are of this order (xi ~ -0.2, alpha ~ 0.6).
-    "negative_xi": jf.DoubleSphere(156.0, 155.8, 639.5, 482.3, -0.18, 0.59, width=1280, height=966),
-    "positive_xi": jf.DoubleSphere(230.0, 231.0, 639.5, 482.3, 0.35, 0.57, width=1280, height=966),
-    "low_alpha": jf.DoubleSphere(300.0, 301.0, 639.5, 482.3, 0.1, 0.4, width=1280, height=966),
+    "negative_xi": jc.DoubleSphere(156.0, 155.8, 639.5, 482.3, -0.18, 0.59, width=1280, height=966),
+    "positive_xi": jc.DoubleSphere(230.0, 231.0, 639.5, 482.3, 0.35, 0.57, width=1280, height=966),
+    "low_alpha": jc.DoubleSphere(300.0, 301.0, 639.5, 482.3, 0.1, 0.4, width=1280, height=966),
 }
 
 
@@ -83,8 +83,8 @@ def test_pixel_ray_pixel(name, jit_project, jit_unproject):
 
 def test_xi_zero_is_the_unified_model():
     rays = jnp.asarray(_rays(2.0, 64, seed=3))
-    ds = jf.DoubleSphere(280.0, 285.0, 640.2, 481.7, 0.0, 0.6, width=1280, height=966)
-    ucm = jf.UnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.6, width=1280, height=966)
+    ds = jc.DoubleSphere(280.0, 285.0, 640.2, 481.7, 0.0, 0.6, width=1280, height=966)
+    ucm = jc.UnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.6, width=1280, height=966)
     np.testing.assert_allclose(np.asarray(ds.project(rays)[0]), np.asarray(ucm.project(rays)[0]), atol=1e-12)
     assert float(ds.theta_max()) == pytest.approx(float(ucm.theta_max()), abs=1e-12)
 

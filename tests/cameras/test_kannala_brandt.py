@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import jaxfish as jf
+import jaxfish.cameras as jc
 from tests import tolerances as tol
 from tests.helpers import central_difference_jacobian, three_ways
 
@@ -19,8 +19,8 @@ K = (0.03, -0.006, 0.001, -0.0001)
 N = 512
 
 
-def _camera(k=K, dtype=jnp.float64) -> jf.KannalaBrandt:
-    return jf.KannalaBrandt(310.0, 305.0, 641.3, 479.8, k, width=1280, height=966, dtype=dtype)
+def _camera(k=K, dtype=jnp.float64) -> jc.KannalaBrandt:
+    return jc.KannalaBrandt(310.0, 305.0, 641.3, 479.8, k, width=1280, height=966, dtype=dtype)
 
 
 def _rays(theta_max: float, n: int, seed: int = 0) -> np.ndarray:
@@ -138,7 +138,7 @@ def test_batch_shapes_and_shape_errors(jit_project):
     with pytest.raises(ValueError, match="shape"):
         cam.unproject(jnp.ones((4, 3)))
     with pytest.raises(ValueError, match="image size"):
-        jf.KannalaBrandt(1.0, 1.0, 0.0, 0.0, width=0, height=10)
+        jc.KannalaBrandt(1.0, 1.0, 0.0, 0.0, width=0, height=10)
 
 
 def test_gradients_finite_at_the_principal_point_and_match_finite_differences():
@@ -150,7 +150,7 @@ def test_gradients_finite_at_the_principal_point_and_match_finite_differences():
     uv = jnp.stack([cam.principal_point, jnp.asarray([1250.0, 900.0])])
 
     def rays(k, uv):
-        return jf.KannalaBrandt(310.0, 305.0, 641.3, 479.8, k, width=1280, height=966).unproject(uv)[0]
+        return jc.KannalaBrandt(310.0, 305.0, 641.3, 479.8, k, width=1280, height=966).unproject(uv)[0]
 
     rays_jit = jax.jit(rays)
     d_k, d_uv = jax.jit(jax.jacfwd(rays, argnums=(0, 1)))(jnp.asarray(K), uv)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import jaxfish as jf
+import jaxfish.cameras as jc
 from tests import tolerances as tol
 from tests.helpers import central_difference_jacobian, three_ways
 
@@ -36,10 +37,10 @@ def _eucm_reference(p, fx, fy, cx, cy, a, b):
 
 
 CAMERAS = {
-    "ucm_wide": jf.UnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.62, width=1280, height=966),
-    "ucm_narrow": jf.UnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.35, width=1280, height=966),
-    "eucm": jf.ExtendedUnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.63, 1.15, width=1280, height=966),
-    "eucm_low_alpha": jf.ExtendedUnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.4, 0.8, width=1280, height=966),
+    "ucm_wide": jc.UnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.62, width=1280, height=966),
+    "ucm_narrow": jc.UnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.35, width=1280, height=966),
+    "eucm": jc.ExtendedUnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.63, 1.15, width=1280, height=966),
+    "eucm_low_alpha": jc.ExtendedUnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.4, 0.8, width=1280, height=966),
 }
 
 
@@ -50,7 +51,7 @@ def _wide_grid() -> jnp.ndarray:
 
 
 def _reference(cam, p):
-    if isinstance(cam, jf.UnifiedCamera):
+    if isinstance(cam, jc.UnifiedCamera):
         a = float(cam.alpha)
         return _mei_reference(p, a / (1 - a), float(cam.fx) / (1 - a), float(cam.fy) / (1 - a), float(cam.cx), float(cam.cy))
     return _eucm_reference(p, *(float(x) for x in (cam.fx, cam.fy, cam.cx, cam.cy, cam.alpha, cam.beta)))
@@ -103,14 +104,14 @@ def test_float32_roundtrip(jit_project, jit_unproject):
 
 def test_special_cases():
     rays = jnp.asarray(_rays(1.2, 64, seed=5))
-    ucm = jf.UnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.6, width=1280, height=966)
-    eucm = jf.ExtendedUnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.6, 1.0, width=1280, height=966)
+    ucm = jc.UnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.6, width=1280, height=966)
+    eucm = jc.ExtendedUnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.6, 1.0, width=1280, height=966)
     np.testing.assert_allclose(np.asarray(ucm.project(rays)[0]), np.asarray(eucm.project(rays)[0]), atol=1e-12)
-    mei = jf.UnifiedCamera.from_mei(1.5, 700.0, 712.5, 640.2, 481.7, width=1280, height=966)
+    mei = jc.UnifiedCamera.from_mei(1.5, 700.0, 712.5, 640.2, 481.7, width=1280, height=966)
     assert float(mei.alpha) == pytest.approx(0.6) and float(mei.fx) == pytest.approx(280.0)
     assert float(mei.xi) == pytest.approx(1.5)
     pinhole = jf.Pinhole(280.0, 285.0, 640.2, 481.7, width=1280, height=966)
-    ucm0 = jf.UnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.0, width=1280, height=966)
+    ucm0 = jc.UnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.0, width=1280, height=966)
     np.testing.assert_allclose(np.asarray(ucm0.project(rays)[0]), np.asarray(pinhole.project(rays)[0]), atol=1e-12)
     assert float(ucm0.theta_max()) == pytest.approx(math.pi / 2)
 

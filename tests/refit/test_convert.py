@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import jaxfish as jf
+import jaxfish.cameras as jc
 from jaxfish.refit import convert_camera, intrinsics_from_dict, intrinsics_to_dict
 from tests import tolerances as tol
 
@@ -22,7 +23,7 @@ def test_woodscape_with_odd_terms_converts_exactly_to_kb_and_back():
     ws = _woodscape_odd()
     res = convert_camera(ws, "kannala_brandt")
     kb = res.camera
-    assert isinstance(kb, jf.KannalaBrandt) and bool(res.converged)
+    assert isinstance(kb, jc.KannalaBrandt) and bool(res.converged)
     assert float(res.max_px) < tol.CONVERT_EXACT_PX
     assert int(res.num_target_invalid) == 0
     # Closed form: fx = k1, fy = k1 * aspect, kb_k1 = k3 / k1, other coefficients 0.
@@ -52,21 +53,21 @@ def test_real_calibration_to_kb_and_back(real_calibration_path):
 
 def test_other_models_exact_where_nested():
     """UCM is DS with xi = 0 (and EUCM with beta = 1): those conversions are exact."""
-    ucm = jf.UnifiedCamera(290.0, 291.0, 640.5, 481.0, 0.58, width=1280, height=966)
+    ucm = jc.UnifiedCamera(290.0, 291.0, 640.5, 481.0, 0.58, width=1280, height=966)
     ds = convert_camera(ucm, "ds", theta_max=math.radians(120))
     assert float(ds.max_px) < tol.CONVERT_EXACT_PX * 10
     # xi and alpha nearly trade off near xi = 0: the projections agree, the parameters to ~1e-4.
     assert abs(float(ds.camera.xi)) < 1e-3 and float(ds.camera.alpha) == pytest.approx(0.58, abs=1e-3)
     # A fixed parameter keeps its initial value (here: an explicit initial camera with k4 = 0).
-    start = jf.KannalaBrandt(290.0, 291.0, 640.5, 481.0, (0.0, 0.0, 0.0, 0.0), width=1280, height=966)
+    start = jc.KannalaBrandt(290.0, 291.0, 640.5, 481.0, (0.0, 0.0, 0.0, 0.0), width=1280, height=966)
     kb = convert_camera(ucm, start, theta_max=math.radians(120), fixed=("k4",))
     assert float(kb.camera.k[3]) == 0.0 and float(kb.rms_px) < 1.0
 
 
 def test_intrinsics_dict_roundtrip_and_errors():
-    for cam in (_woodscape_odd(), jf.KannalaBrandt(300.0, 301.0, 640.0, 480.0, (0.01, 0.0, 0.0, 0.0), width=1280, height=966),
-                jf.DoubleSphere(156.0, 155.8, 639.5, 482.3, -0.18, 0.59, width=1280, height=966),
-                jf.ExtendedUnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.63, 1.15, width=1280, height=966)):
+    for cam in (_woodscape_odd(), jc.KannalaBrandt(300.0, 301.0, 640.0, 480.0, (0.01, 0.0, 0.0, 0.0), width=1280, height=966),
+                jc.DoubleSphere(156.0, 155.8, 639.5, 482.3, -0.18, 0.59, width=1280, height=966),
+                jc.ExtendedUnifiedCamera(280.0, 285.0, 640.2, 481.7, 0.63, 1.15, width=1280, height=966)):
         d = intrinsics_to_dict(cam)
         again = intrinsics_from_dict(d)
         assert type(again) is type(cam) and intrinsics_to_dict(again) == d
