@@ -87,7 +87,8 @@ def _rgb(rng: np.random.Generator, lo: float = 0.15, hi: float = 0.9) -> tuple[f
 
 def ego_body_boxes(rig: Mapping[str, Calibration] | None) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
     """The ego body as ``[(centre, half extents)]`` boxes in the ego **CARLA actor** frame, sized to
-    stay strictly inside the rig's cameras (every camera is outside the body)."""
+    stay strictly inside the rig's cameras: every camera is outside the body (a box containing a
+    camera, e.g. below a roof camera, is lowered under it or dropped)."""
     if rig:
         t = np.stack([np.asarray(c.camera_to_vehicle.translation, np.float64) for c in rig.values()])
         t[:, 1] *= -1.0  # ISO -> CARLA
@@ -106,12 +107,19 @@ def ego_body_boxes(rig: Mapping[str, Calibration] | None) -> list[tuple[tuple[fl
     cabin_lo, cabin_hi = x_lo + 0.25 * length, x_hi - 0.35 * length
     cabin = ((0.5 * (cabin_lo + cabin_hi), 0.0, top + 0.25), (0.5 * (cabin_hi - cabin_lo), 0.85 * half_w, 0.25))
     boxes = [lower, cabin]
-    if rig:  # keep every camera outside the body
-        for c, h in boxes:
-            inside = np.all(np.abs(t - np.asarray(c)) < np.asarray(h), axis=-1)
-            if np.any(inside):
-                raise ValueError("ego_body_boxes: a rig camera lies inside the ego body; check the rig translations")
-    return boxes
+    if not rig:
+        return boxes
+    kept = []
+    for c, h in boxes:  # keep every camera outside the body: lower a box's top below a camera in it
+        c, h = np.asarray(c, float), np.asarray(h, float)
+        inside = np.all(np.abs(t - c) < h + 0.02, axis=-1)
+        if np.any(inside):
+            bottom, top_ = c[2] - h[2], min(c[2] + h[2], float(t[inside, 2].min()) - 0.05)
+            if top_ - bottom < 0.1:
+                continue
+            c[2], h[2] = 0.5 * (bottom + top_), 0.5 * (top_ - bottom)
+        kept.append((tuple(float(v) for v in c), tuple(float(v) for v in h)))
+    return kept
 
 
 class _World:

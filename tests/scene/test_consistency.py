@@ -200,3 +200,19 @@ def test_invalid_inputs_are_rejected(street):
     # a scene passes through jit and pytree surgery untouched
     moved = eqx.tree_at(lambda s: s.object_location, street.scene, street.scene.object_location + 1.0)
     assert moved.num_objects == street.scene.num_objects
+
+
+def test_ego_body_keeps_every_camera_outside():
+    import jaxfish as jf
+    from jaxfish.scene import ego_body_boxes
+    from jaxfish.transforms import Pose
+
+    rig = dict(jf.default_rig())
+    roof = rig["FV"].camera_to_vehicle
+    rig["ROOF"] = jf.Calibration("ROOF", rig["FV"].camera, Pose(roof.rotation_matrix, np.array([1.2, 0.0, 1.3])))
+    for r in (jf.default_rig(), rig):
+        boxes = ego_body_boxes(r)
+        assert boxes
+        t = np.stack([np.asarray(c.camera_to_vehicle.translation) * np.array([1.0, -1.0, 1.0]) for c in r.values()])
+        for c, h in boxes:
+            assert not np.any(np.all(np.abs(t - np.asarray(c)) < np.asarray(h), axis=-1))
