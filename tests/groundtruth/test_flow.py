@@ -12,7 +12,6 @@ import jaxfish as jf
 from jaxfish import groundtruth as gt
 from jaxfish.transforms import Pose
 from tests import tolerances as tol
-from tests.helpers import three_ways
 
 F64 = jnp.float64
 
@@ -97,17 +96,27 @@ def test_actor_points_move_with_their_actor():
     assert np.all(f[:, 8:, 0][np.asarray(out.in_image)[:, 8:]] < -0.3)
 
 
-def test_eager_jit_vmap_agree():
+def test_jit_vmap_and_loop_agree():
     cam = jf.Pinhole.from_fov(24, 18, 100.0, dtype=F64)
-    rng = jnp.asarray(np.random.default_rng(1).uniform(1, 30, (18, 24)))
-    idx = jnp.where(jnp.arange(24)[None, :] < 12, 0, -1) * jnp.ones((18, 1), jnp.int32)
+    rng = jnp.asarray(np.random.default_rng(1).uniform(1, 30, (2, 18, 24)))
+    idx = (jnp.where(jnp.arange(24)[None, :] < 12, 0, -1) * jnp.ones((18, 1), jnp.int32)).astype(jnp.int32)
     move = Pose(jnp.eye(3, dtype=F64)[None], jnp.asarray([[0.2, 0.1, 0.0]]))
     dst = Pose(jnp.eye(3, dtype=F64), jnp.asarray([0.0, 0.0, 0.3]))
-    fn = lambda r, i: gt.analytic_flow(cam, r, i, move, Pose.identity(dtype=F64), dst).flow  # noqa: E731
-    e, j, v = three_ways(fn, rng, idx.astype(jnp.int32))
-    np.testing.assert_allclose(j, e, atol=1e-9)
-    np.testing.assert_allclose(v, e, atol=1e-9)
-    assert np.all(np.isfinite(e))
+    fn = jax.jit(lambda r: gt.analytic_flow(cam, r, idx, move, Pose.identity(dtype=F64), dst).flow)
+    loop = np.stack([np.asarray(fn(rng[i])) for i in range(2)])
+    np.testing.assert_allclose(np.asarray(jax.vmap(fn)(rng)), loop, atol=1e-9)
+    assert np.all(np.isfinite(loop))
+    # Reference: the closed form of a pure z translation for the static right half.
+    uv = np.asarray(cam.pixel_grid(F64))
+    x = (uv[..., 0] - float(cam.cx)) / float(cam.fx)
+    y = (uv[..., 1] - float(cam.cy)) / float(cam.fy)
+    z = np.asarray(rng[0]) / np.sqrt(1 + x * x + y * y)
+    u2 = float(cam.cx) + float(cam.fx) * x * z / (z - 0.3)
+    v2 = float(cam.cy) + float(cam.fy) * y * z / (z - 0.3)
+    inside = (u2 >= -0.5) & (u2 <= 23.5) & (v2 >= -0.5) & (v2 <= 17.5)
+    inside[:, :12] = False
+    assert inside.sum() > 50
+    np.testing.assert_allclose(loop[0][..., 0][inside], (u2 - uv[..., 0])[inside], atol=1e-9)
 
 
 def test_flow_from_the_oracle_geometry_matches_its_motion(sample):

@@ -1,0 +1,75 @@
+"""Events: face events land on the fisheye pixels whose rays pass through their face pixel, counts
+follow the documented fan-out rule, time order is kept."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxfish import groundtruth as gt
+
+
+@pytest.fixture(scope="module")
+def event_map(sample):
+    return gt.event_map_from_lut(sample.lut)
+
+
+def _random_events(rng, n, faces, size, t0=1_000_000_000):
+    return (rng.integers(0, faces, n), rng.integers(0, size, n), rng.integers(0, size, n),
+            np.sort(rng.integers(t0, t0 + 100_000_000, n)).astype(np.int64), rng.random(n) < 0.5)
+
+
+def test_events_land_where_the_fisheye_ray_meets_the_face_pixel(sample, event_map, jit_unproject):
+    rng = np.random.default_rng(0)
+    fi, x, y, t, p = _random_events(rng, 4000, len(sample.lut.source_shape) and sample.lut.num_faces, sample.face_size)
+    out = gt.compact_events(jax.jit(gt.map_events)(event_map, fi, x, y, t, p))
+    assert out["x"].size > 100
+    # Each output pixel's centre ray, projected into the rig, falls in the event's face pixel.
+    from jaxfish.reprojection import CubeRig
+
+    rig = CubeRig(sample.face_size, dtype=jnp.float32)
+    uv = np.stack([out["x"], out["y"]], -1).astype(np.float32)
+    rays, ok = jit_unproject(sample.camera, jnp.asarray(uv))
+    face, fuv, fok = rig.project_faces(rays)
+    assert np.all(np.asarray(ok) & np.asarray(fok))
+    np.testing.assert_array_equal(np.asarray(face), out["face"])
+    src = {}
+    for k in range(fi.size):
+        src.setdefault((int(fi[k]), int(x[k]), int(y[k])), []).append(k)
+    fx = np.floor(np.asarray(fuv)[:, 0] + 0.5).astype(int)
+    fy = np.floor(np.asarray(fuv)[:, 1] + 0.5).astype(int)
+    for j in range(out["x"].size):
+        assert (int(out["face"][j]), fx[j], fy[j]) in src
+
+
+def test_counts_follow_the_fanout_rule_and_time_order_is_kept(sample, event_map):
+    rng = np.random.default_rng(1)
+    s = sample.face_size
+    fi, x, y, t, p = _random_events(rng, 3000, sample.lut.num_faces, s)
+    ev = jax.jit(gt.map_events)(event_map, fi, x, y, t, p)
+    fan = np.asarray(event_map.fanout)[(fi * s + y) * s + x]
+    assert int(ev.count) == fan.sum()
+    out = gt.compact_events(ev)
+    assert np.all(np.diff(out["t"]) >= 0)
+    # Polarity and time are copied from the source event; every source event with fan-out f appears f times.
+    assert sorted(zip(out["t"].tolist(), out["polarity"].tolist(), strict=True)) == sorted(
+        [(int(tk), bool(pk)) for tk, pk, f in zip(t, p, fan, strict=True) for _ in range(f)])
+    # The whole fisheye is fed: every valid fisheye pixel has exactly one source face pixel.
+    assert int(np.asarray(event_map.fanout).sum()) == int(np.asarray(sample.lut.valid[..., 0]).sum())
+
+
+def test_out_of_range_events_are_dropped(event_map):
+    ev = gt.map_events(event_map, jnp.asarray([0, 9, 0]), jnp.asarray([-1, 0, 0]), jnp.asarray([0, 0, 10**6]),
+                       jnp.asarray([1, 2, 3]), jnp.asarray([True, True, False]))
+    assert int(ev.count) == 0
+
+
+def test_event_colours():
+    img = np.asarray(gt.events_to_color(jnp.asarray([0, 1, 1, 2]), jnp.asarray([0, 0, 0, 1]),
+                                        jnp.asarray([True, True, False, False]), width=3, height=2))
+    np.testing.assert_array_equal(img[0, 0], [0, 0, 255])  # positive: blue
+    np.testing.assert_array_equal(img[0, 1], [255, 255, 255])  # tie: white
+    np.testing.assert_array_equal(img[1, 2], [255, 0, 0])  # negative: red
+    np.testing.assert_array_equal(img[1, 0], [255, 255, 255])

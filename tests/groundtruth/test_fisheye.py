@@ -1,0 +1,40 @@
+"""Fisheye images and depth from cube faces: range along the fisheye ray (sky 1000), z-depth."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfish import groundtruth as gt
+
+
+def test_range_matches_the_oracle_and_sky_is_1000(sample):
+    img, o = sample.truth.images, sample.oracle
+    v = np.asarray(img.valid) & np.asarray(o.valid)
+    r, ro = np.asarray(img.range_m), np.asarray(o.range_m)
+    hit = v & (ro < 1000) & (r < 1000)
+    rel = np.abs(r - ro)[hit] / ro[hit]
+    assert np.median(rel) < 1e-3
+    sky = v & (np.asarray(o.semantic) == 13)
+    assert sky.sum() > 50
+    assert np.mean(r[sky] == 1000.0) > 0.97
+    assert np.all(r[np.asarray(img.valid)] > 0)
+
+
+def test_z_depth_option(sample):
+    img = sample.truth.images
+    z = np.asarray(gt.range_to_z_depth(sample.camera, img.range_m))
+    o = sample.oracle
+    v = np.asarray(img.valid) & (np.asarray(o.range_m) < 1000) & (np.asarray(img.range_m) < 1000)
+    zo = np.asarray(o.depth_m)
+    rel = np.abs(z - zo)[v] / np.maximum(np.abs(zo[v]), 1.0)
+    assert np.median(rel) < 1e-3
+    assert np.all(z[np.asarray(img.range_m) >= 1000] == 1000)
+
+
+def test_semantics_agree_with_the_oracle(sample):
+    t = np.asarray(sample.truth.images.tag)
+    o = np.asarray(sample.oracle.semantic)
+    v = np.asarray(sample.truth.images.valid)
+    assert np.mean(t[v] == o[v]) > 0.97
+    assert sample.truth.images.rgb.dtype == jnp.uint8

@@ -1,0 +1,62 @@
+"""Event files: CARLA dtype and tonic arrays round trip with their time unit; colour rendering."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxfish import ImageError
+from jaxfish.io import (
+    DVS_EVENT_DTYPE,
+    TONIC_EVENT_DTYPE,
+    carla_events,
+    carla_to_tonic,
+    read_events_npy,
+    read_events_tonic,
+    read_image,
+    write_events_color,
+    write_events_npy,
+    write_events_tonic,
+)
+
+
+def _events(n=50):
+    rng = np.random.default_rng(0)
+    return carla_events(rng.integers(0, 32, n), rng.integers(0, 24, n), np.sort(rng.integers(10**9, 10**9 + 10**8, n)),
+                        rng.random(n) < 0.5)
+
+
+def test_carla_dtype_round_trip(tmp_path):
+    ev = _events()
+    assert ev.dtype == DVS_EVENT_DTYPE and ev.dtype.itemsize == 13
+    write_events_npy(tmp_path / "e.npy", ev)
+    back = read_events_npy(tmp_path / "e.npy")
+    assert back.dtype == DVS_EVENT_DTYPE
+    np.testing.assert_array_equal(back, ev)
+
+
+def test_tonic_round_trip_states_microseconds(tmp_path):
+    ev = _events()
+    write_events_tonic(tmp_path / "e.npz", ev, width=32, height=24)
+    ton, unit, size = read_events_tonic(tmp_path / "e.npz")
+    assert unit == "us" and size == (32, 24, 2)
+    assert ton.dtype == TONIC_EVENT_DTYPE and ton.dtype.names == ("x", "y", "t", "p")
+    np.testing.assert_array_equal(ton["t"], ev["t"] // 1000)
+    np.testing.assert_array_equal(ton["p"], ev["pol"].astype(np.int64))
+    np.testing.assert_array_equal(ton["x"], ev["x"])
+    np.testing.assert_array_equal(carla_to_tonic(ev), ton)
+
+
+def test_wrong_dtype_and_missing_files(tmp_path):
+    np.save(tmp_path / "bad.npy", np.zeros(3))
+    with pytest.raises(ImageError, match="bad.npy"):
+        read_events_npy(tmp_path / "bad.npy")
+    with pytest.raises(ImageError, match="missing"):
+        read_events_tonic(tmp_path / "none.npz")
+
+
+def test_colour_rendering(tmp_path):
+    ev = carla_events([1, 2], [0, 3], [5, 6], [True, False])
+    write_events_color(tmp_path / "c.png", ev, width=4, height=5)
+    img = read_image(tmp_path / "c.png")
+    assert img[0, 1].tolist() == [0, 0, 255] and img[3, 2].tolist() == [255, 0, 0] and img[1, 1].tolist() == [255] * 3

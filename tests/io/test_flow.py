@@ -1,0 +1,62 @@
+"""Flow files: Middlebury .flo and KITTI 16-bit PNG round trips, malformed files, colour PNG."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxfish import ImageError
+from jaxfish.io import read_flo, read_image, read_kitti_flow, write_flo, write_flow_color, write_kitti_flow
+from tests import tolerances as tol
+
+
+def _flow(h=7, w=9, seed=0):
+    return np.random.default_rng(seed).normal(scale=20.0, size=(h, w, 2)).astype(np.float32)
+
+
+def test_flo_round_trip_is_exact(tmp_path):
+    f = _flow()
+    write_flo(tmp_path / "a.flo", f)
+    np.testing.assert_array_equal(read_flo(tmp_path / "a.flo"), f)
+    raw = (tmp_path / "a.flo").read_bytes()
+    assert raw[:4] == b"PIEH" and len(raw) == 12 + 7 * 9 * 8
+    assert np.frombuffer(raw[4:12], "<i4").tolist() == [9, 7]  # width, then height
+
+
+def test_flo_layout_is_u_v_interleaved_row_major(tmp_path):
+    f = np.zeros((2, 3, 2), np.float32)
+    f[0, 1] = (1.5, -2.5)
+    write_flo(tmp_path / "b.flo", f)
+    body = np.frombuffer((tmp_path / "b.flo").read_bytes()[12:], "<f4")
+    assert body[2:4].tolist() == [1.5, -2.5]
+
+
+def test_flo_rejects_malformed_files(tmp_path):
+    (tmp_path / "bad.flo").write_bytes(b"XXXX" + b"\0" * 8)
+    with pytest.raises(ImageError, match="bad.flo"):
+        read_flo(tmp_path / "bad.flo")
+    write_flo(tmp_path / "c.flo", _flow())
+    (tmp_path / "c.flo").write_bytes((tmp_path / "c.flo").read_bytes()[:-4])
+    with pytest.raises(ImageError, match="size"):
+        read_flo(tmp_path / "c.flo")
+    with pytest.raises(ImageError):
+        write_flo(tmp_path / "d.flo", np.zeros((3, 3)))
+
+
+def test_kitti_round_trip(tmp_path):
+    f = _flow()
+    valid = np.random.default_rng(1).random((7, 9)) < 0.7
+    write_kitti_flow(tmp_path / "k.png", f, valid)
+    raw = read_image(tmp_path / "k.png")
+    assert raw.dtype == np.uint16 and raw.shape == (7, 9, 3)
+    g, v = read_kitti_flow(tmp_path / "k.png")
+    np.testing.assert_array_equal(v, valid)
+    np.testing.assert_allclose(g[valid], f[valid], atol=tol.KITTI_FLOW_PX)
+    assert np.all(g[~valid] == 0)
+    np.testing.assert_array_equal(raw[..., 0][valid], np.rint(f[..., 0][valid].astype(np.float64) * 64 + 2**15).astype(np.uint16))
+
+
+def test_flow_colour_png(tmp_path):
+    write_flow_color(tmp_path / "c.png", _flow())
+    img = read_image(tmp_path / "c.png")
+    assert img.dtype == np.uint8 and img.shape == (7, 9, 3)

@@ -1,0 +1,76 @@
+"""Label files: index and colour PNGs (palette metadata), 2D box CSV, 3D box pickle, displacements."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxfish import ImageError
+from jaxfish.io import (
+    boxes_2d_rows,
+    read_boxes_2d_csv,
+    read_boxes_3d_pickle,
+    read_displacements,
+    read_image,
+    read_label_png,
+    read_palette,
+    synwoodscape_palette_dict,
+    write_boxes_2d_csv,
+    write_boxes_3d_pickle,
+    write_color_png,
+    write_depth_npy,
+    write_displacements,
+    write_label_png,
+)
+
+
+def test_label_png_round_trip(tmp_path):
+    lab = np.random.default_rng(0).integers(0, 25, (6, 8))
+    write_label_png(tmp_path / "l.png", lab)
+    assert read_image(tmp_path / "l.png").dtype == np.uint8
+    np.testing.assert_array_equal(read_label_png(tmp_path / "l.png"), lab)
+    big = lab * 1000
+    write_label_png(tmp_path / "i.png", big)
+    np.testing.assert_array_equal(read_label_png(tmp_path / "i.png"), big)
+
+
+def test_colour_png_carries_its_palette(tmp_path):
+    rgb = np.random.default_rng(1).integers(0, 256, (4, 5, 3)).astype(np.uint8)
+    pal = synwoodscape_palette_dict()
+    write_color_png(tmp_path / "c.png", rgb, pal)
+    np.testing.assert_array_equal(read_image(tmp_path / "c.png"), rgb)
+    assert read_palette(tmp_path / "c.png") == pal
+    assert len(pal["classes"]) == 25 and pal["colors"][24] == list(pal["colors"][24])
+    write_color_png(tmp_path / "n.png", rgb)
+    with pytest.raises(ImageError, match="palette"):
+        read_palette(tmp_path / "n.png")
+
+
+def test_box_csv_round_trip(tmp_path):
+    rows = boxes_2d_rows(np.array([[1, 2, 30, 40], [0, 0, 0, 0], [5, 6, 7, 8]]), np.array([True, False, True]),
+                         np.array([10, 4, 21]))
+    assert rows == [("vehicle", 10, 1, 2, 30, 40), ("two_wheeler", 21, 5, 6, 7, 8)]
+    write_boxes_2d_csv(tmp_path / "b.txt", rows)
+    assert (tmp_path / "b.txt").read_text().splitlines()[0] == "vehicle,10,1,2,30,40"
+    assert read_boxes_2d_csv(tmp_path / "b.txt") == rows
+    write_boxes_2d_csv(tmp_path / "e.txt", [])
+    assert (tmp_path / "e.txt").read_text() == "" and read_boxes_2d_csv(tmp_path / "e.txt") == []
+    (tmp_path / "s.txt").write_text("car, 10, 1, 2, 3, 4\n")  # WoodScape files have spaces
+    assert read_boxes_2d_csv(tmp_path / "s.txt") == [("car", 10, 1, 2, 3, 4)]
+    (tmp_path / "x.txt").write_text("car,10,1\n")
+    with pytest.raises(ImageError, match="x.txt:1"):
+        read_boxes_2d_csv(tmp_path / "x.txt")
+
+
+def test_box_pickle_and_displacements(tmp_path):
+    boxes = {7: {"corners_world": np.arange(24.0).reshape(8, 3), "corners_vehicle": np.zeros((8, 3)),
+                 "class_id": 10, "class_name": "vehicle"}}
+    write_boxes_3d_pickle(tmp_path / "b.pkl", boxes)
+    back = read_boxes_3d_pickle(tmp_path / "b.pkl")
+    np.testing.assert_array_equal(back[7]["corners_world"], boxes[7]["corners_world"])
+    assert back[7]["class_id"] == 10
+    write_displacements(tmp_path / "d.txt", [3, 4], [10, 4], [0.75, 0.0], threshold_m=0.5)
+    assert read_displacements(tmp_path / "d.txt") == {3: 0.75, 4: 0.0}
+    assert (tmp_path / "d.txt").read_text().splitlines()[1] == "3 10 0.750000 1"
+    write_depth_npy(tmp_path / "d.npy", np.full((2, 2), 1000.0))
+    assert np.load(tmp_path / "d.npy").dtype == np.float32
