@@ -9,6 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 import jaxfish as jf
+from jaxfish.cli import _refit as _refit  # noqa: F401  (registers refit and convert)
 from jaxfish.cli import app
 from jaxfish.io._correspondences import (
     CorrespondenceError,
