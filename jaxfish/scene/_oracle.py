@@ -127,12 +127,16 @@ def compare_to_oracle(rgb, range_m, semantic, actor_id, valid, oracle: FisheyeOr
 
 def cube_to_fisheye(faces_rgb, faces_depth, faces_semantic, faces_actor, calib: Calibration, face_size: int, *, supersample: int = 1):
     """The cube -> fisheye pipeline of `jaxfish.reprojection` on one camera's faces at t: faces
-    ``(F, S, S, ...)`` in the `CubeRig` order; RGB bilinear (uint8 in, [0, 1] out), depth through
-    `resample_depth` (planar -> range), labels and ids nearest. Returns ``(rgb, range_m, semantic,
-    actor_id, valid)``."""
+    ``(F, S, S, ...)`` in the `CubeRig` order; RGB bilinear (uint8 in, [0, 1] out) averaged over
+    ``supersample²`` sub-pixel samples, depth through `resample_depth` (planar -> range), labels and
+    ids nearest — the geometric buffers at the pixel centre, like the oracle's. Returns
+    ``(rgb, range_m, semantic, actor_id, valid)``."""
     rig = CubeRig(face_size, dtype=_F32)
-    lut = jax.jit(build_lut, static_argnames=("supersample",))(rig, calib.camera.astype(_F32), supersample=supersample)
-    rgb, valid = resample_bilinear(jnp.asarray(faces_rgb), lut)
+    make = jax.jit(build_lut, static_argnames=("supersample",))
+    cam = calib.camera.astype(_F32)
+    lut = make(rig, cam, supersample=1)
+    lut_rgb = make(rig, cam, supersample=supersample) if supersample > 1 else lut
+    rgb, valid = resample_bilinear(jnp.asarray(faces_rgb), lut_rgb)
     rng, _ = resample_depth(jnp.asarray(faces_depth, _F32), lut)
     sem, _ = resample_nearest(jnp.asarray(faces_semantic), lut)
     act, _ = resample_nearest(jnp.asarray(faces_actor), lut)
