@@ -22,8 +22,9 @@ from ..cameras import AbstractCamera
 from ..reprojection import Lut, build_lut
 from ._atomic import atomic_path
 
-#: Bumped whenever the stored layout or the LUT semantics change.
 LUT_FORMAT_VERSION = 1
+"""Version of the ``.npz`` LUT layout, part of every cache key; bumped when the layout or the LUT
+semantics change, so outdated cache files are rebuilt."""
 _ARRAYS = ("face", "uv", "valid", "z_to_range", "tap_index", "tap_frac", "nearest_index", "ring_index", "ring_frac", "ring_valid")
 _STATIC = ("num_faces", "source_width", "source_height", "pad", "supersample")
 

@@ -39,12 +39,13 @@ from jaxtyping import Array, Bool, Float, Shaped
 
 from ._lut import Lut, centre_sample, ring_positions
 
-#: Default relative agreement of the four depth taps below which inverse depth is interpolated.
 DEPTH_AGREEMENT_REL_TOL = 0.05
+"""Default ``rel_tol`` of `resample_depth`: inverse depth is interpolated only when the four taps
+satisfy ``max / min <= 1 + rel_tol``; otherwise the nearest tap is used."""
 #: Frame batches up to this size are unrolled (one kernel per frame in one program); larger ones loop.
 _UNROLL_FRAMES = 8
-#: CARLA's far/sky depth (metres).
 FAR_DEPTH_M = 1000.0
+"""CARLA's far / sky depth in metres: a far sample is never interpolated and stays exactly this."""
 
 
 def _split_source(x: Array, lut: Lut, what: str, *, channels: bool | None) -> tuple[tuple[int, ...], bool]:
