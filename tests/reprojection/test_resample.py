@@ -195,6 +195,9 @@ def test_batched_frames_and_cameras(cube_lut, small_rig, jit_kernels):
     labels = jnp.asarray(rng.integers(0, 9, (3, 5, s, s), dtype=np.int32))
     lab, _ = jit_kernels["nearest"](labels, cube_lut)
     assert lab.shape == (3, 120, 160) and lab.dtype == jnp.int32
+    many = jnp.asarray(rng.integers(0, 9, (10, 5, s, s), dtype=np.uint8))  # > 8 frames: a lax.map loop
+    looped, _ = jit_kernels["nearest"](many, cube_lut)
+    np.testing.assert_array_equal(np.asarray(looped[9]), np.asarray(jit_kernels["nearest"](many[9], cube_lut)[0]))
     with pytest.raises(ValueError, match="does not match"):
         jit_kernels["bilinear"](frames[..., :40, :, :], cube_lut)
 
