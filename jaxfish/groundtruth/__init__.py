@@ -41,6 +41,7 @@ from ._flow import OCCLUSION_REL_TOL as OCCLUSION_REL_TOL
 from ._flow import FlowField as FlowField
 from ._flow import analytic_flow as analytic_flow
 from ._flow import pixel_points as pixel_points
+from ._flow import pixel_rays as pixel_rays
 from ._flow import rigid_motion as rigid_motion
 from ._flow import vehicle_to_world_from_carla as vehicle_to_world_from_carla
 from ._flow import warp_with_flow as warp_with_flow
@@ -58,3 +59,4 @@ from ._instances import instance_colors as instance_colors
 from ._instances import instance_segmentation as instance_segmentation
 from ._instances import max_box_candidates as max_box_candidates
 from ._instances import motion_segmentation as motion_segmentation
+from ._instances import tile_capacity as tile_capacity

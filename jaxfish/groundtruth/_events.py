@@ -109,8 +109,10 @@ def map_events(
     m = event_map.max_fanout
     rep = lambda a: jnp.repeat(a, m)  # noqa: E731
     t_rep = rep(tt)
-    # Stable sort by (invalid, t): valid events first, each in time order; ties keep input order.
-    order = jnp.lexsort((t_rep, ~ok))
+    # Stable sort by time with invalid entries last (key = the dtype's maximum): valid events first,
+    # in time order; ties keep the input order.
+    big = jnp.iinfo(t_rep.dtype).max if jnp.issubdtype(t_rep.dtype, jnp.integer) else jnp.inf
+    order = jnp.argsort(jnp.where(ok, t_rep, big), stable=True)
     tg, ok = tg[order], ok[order]
     w = event_map.width
     safe = jnp.where(ok, tg, 0)

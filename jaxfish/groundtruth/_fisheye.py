@@ -17,7 +17,7 @@ from ..transforms import Pose
 from ._boxes2d import Boxes2D, boxes_from_instances, boxes_from_surfaces
 from ._boxes3d import Boxes3D
 from ._classes import carla_to_synwoodscape
-from ._flow import FAR_RANGE_M, FlowField, analytic_flow, pixel_points, rigid_motion
+from ._flow import FAR_RANGE_M, FlowField, analytic_flow, pixel_points, pixel_rays, rigid_motion
 from ._instances import (
     BOX_MARGIN_M,
     FALLBACK_DISTANCE_M,
@@ -25,9 +25,10 @@ from ._instances import (
     TILE_SIZE,
     InstanceMap,
     _assign,
-    _candidates,
+    _plan,
     box_displacements,
     motion_segmentation,
+    tile_capacity,
 )
 
 
@@ -99,10 +100,11 @@ def camera_to_world(vehicle_to_world: Pose, camera_to_vehicle: Pose) -> Pose:
     return v @ c
 
 
-def _labels(camera, images: FisheyeImages, cam_to_world: Pose, boxes: Boxes3D, carla_version, margin_m, fallback_m, k):
-    world, ok = _world_points(camera, images, cam_to_world)
+def _labels(camera, rays, images: FisheyeImages, cam_to_world: Pose, boxes: Boxes3D, carla_version, margin_m, fallback_m, k,
+            capacity):
+    world, ok = _world_points(camera, rays, images, cam_to_world)
     base = jnp.where(ok, carla_to_synwoodscape(images.tag, carla_version=carla_version), -1)
-    inst = _assign(world, base, boxes, margin_m, fallback_m, TILE_SIZE, k)
+    inst = _assign(world, base, boxes, margin_m, fallback_m, TILE_SIZE, k, capacity)
     sem = carla_to_synwoodscape(images.tag, carla_version=carla_version, box_class=inst.class_id)
     return inst, sem
 
@@ -125,22 +127,27 @@ def fisheye_ground_truth(
     fallback_m: float = FALLBACK_DISTANCE_M,
     max_candidates: int | None = None,
     surface_samples: int = 12,
+    rays: tuple[Float[ArrayLike, "H W 3"], Bool[ArrayLike, "H W"]] | None = None,
 ) -> CameraGroundTruth:
     """Everything for one fisheye camera: ``faces_prev`` / ``faces`` carry ``rgb (F, S, S, 3)``,
     ``depth_m (F, S, S)`` (CARLA planar depth, metres) and ``semantic (F, S, S)`` (CARLA tags) at
     t-1 and t (e.g. `jaxfish.scene.CameraImages` stacked over faces); ``boxes_prev`` / ``boxes``
     the same actors in the same order at t-1 and t; ``vehicle_to_world*`` the ego's ISO vehicle
     frame -> CARLA world (`vehicle_to_world_from_carla`). Flow uses the instance assignment at
-    t-1 (each point moves with its box) and the range map at t for occlusions."""
+    t-1 (each point moves with its box) and the range map at t for occlusions. ``rays``: the
+    camera's `pixel_rays` (a per-calibration constant; computed here when omitted)."""
     img_p, img = _jit_images_pair(lut, *(jnp.asarray(getattr(f, k)) for f in (faces_prev, faces) for k in ("rgb", "depth_m", "semantic")))
     c2w_p = camera_to_world(vehicle_to_world_prev, camera_to_vehicle)
     c2w = camera_to_world(vehicle_to_world, camera_to_vehicle)
+    rays = _jit_rays(camera) if rays is None else (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
+    reach = max(margin_m, fallback_m)
+    k_host, n_host = _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach)
     if max_candidates is None:
-        reach = max(margin_m, fallback_m)
-        counts = _jit_counts(camera, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach)
-        max_candidates = max(int(jnp.max(counts)), 1)
-    return _jit_rest(camera, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, float(motion_threshold_m),
-                     bool(backward_flow), float(margin_m), float(fallback_m), int(max_candidates), int(surface_samples))
+        max_candidates = max(int(k_host), 1)
+    capacity = tile_capacity(int(n_host))
+    return _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, float(motion_threshold_m),
+                     bool(backward_flow), float(margin_m), float(fallback_m), int(max_candidates), capacity,
+                     int(surface_samples))
 
 
 @jax.jit
@@ -148,36 +155,43 @@ def _jit_images_pair(lut, rgb_p, depth_p, tag_p, rgb, depth, tag):
     return fisheye_images(lut, rgb_p, depth_p, tag_p), fisheye_images(lut, rgb, depth, tag)
 
 
-def _world_points(camera, images: FisheyeImages, cam_to_world: Pose):
-    pts, ok = pixel_points(camera, images.range_m, dtype=jnp.float32)
+@jax.jit
+def _jit_rays(camera):
+    return pixel_rays(camera, dtype=jnp.float32)
+
+
+def _world_points(camera, rays, images: FisheyeImages, cam_to_world: Pose):
+    pts, ok = pixel_points(camera, images.range_m, dtype=jnp.float32, rays=rays)
     return cam_to_world.apply(pts), ok & images.valid
 
 
-@functools.partial(jax.jit, static_argnums=(7, 8))
-def _jit_counts(camera, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach):
-    out = []
+@functools.partial(jax.jit, static_argnums=(8, 9))
+def _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach):
+    ks, ns = [], []
     for im, c2w_, bx in ((img_p, c2w_p, boxes_prev), (img, c2w, boxes)):
-        world, ok = _world_points(camera, im, c2w_)
+        world, ok = _world_points(camera, rays, im, c2w_)
         base = jnp.where(ok, carla_to_synwoodscape(im.tag, carla_version=carla_version), -1)
-        out.append(jnp.max(jnp.sum(_candidates(world, base, bx, TILE_SIZE, reach), axis=-1)))
-    return jnp.stack(out)
+        k, n = _plan(world, base, bx, TILE_SIZE, reach)
+        ks.append(k)
+        ns.append(n)
+    return jnp.max(jnp.stack(ks)), jnp.max(jnp.stack(ns))
 
 
-@functools.partial(jax.jit, static_argnums=tuple(range(7, 14)))
-def _jit_rest(camera, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, motion_threshold_m, backward_flow,
-              margin_m, fallback_m, k, surface_samples):
-    inst_p, sem_p = _labels(camera, img_p, c2w_p, boxes_prev, carla_version, margin_m, fallback_m, k)
-    inst, sem = _labels(camera, img, c2w, boxes, carla_version, margin_m, fallback_m, k)
+@functools.partial(jax.jit, static_argnums=tuple(range(8, 16)))
+def _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, motion_threshold_m, backward_flow,
+              margin_m, fallback_m, k, capacity, surface_samples):
+    inst_p, sem_p = _labels(camera, rays, img_p, c2w_p, boxes_prev, carla_version, margin_m, fallback_m, k, capacity)
+    inst, sem = _labels(camera, rays, img, c2w, boxes, carla_version, margin_m, fallback_m, k, capacity)
     disp = box_displacements(boxes_prev, boxes)
     motion = motion_segmentation(inst.box_index, disp, boxes.class_id, threshold_m=motion_threshold_m)
     fwd_motion = rigid_motion(boxes_prev.box_to_world, boxes.box_to_world)
     flow = analytic_flow(camera, img_p.range_m, inst_p.box_index, fwd_motion, c2w_p, c2w, target_range_m=img.range_m,
-                         valid=img_p.valid)
+                         valid=img_p.valid, rays=rays)
     back = None
     if backward_flow:
         bwd_motion = rigid_motion(boxes.box_to_world, boxes_prev.box_to_world)
         back = analytic_flow(camera, img.range_m, inst.box_index, bwd_motion, c2w, c2w_p, target_range_m=img_p.range_m,
-                             valid=img.valid)
+                             valid=img.valid, rays=rays)
     b2d = boxes_from_instances(inst.box_index, boxes.num_boxes)
     full = boxes_from_surfaces(boxes, camera, c2w.inverse(), samples=surface_samples)
     return CameraGroundTruth(

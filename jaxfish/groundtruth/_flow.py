@@ -55,17 +55,26 @@ def rigid_motion(pose_from: Pose, pose_to: Pose) -> Pose:
     return pose_to @ pose_from.inverse()
 
 
+def pixel_rays(camera: AbstractCamera, *, dtype=jnp.float32) -> tuple[Float[Array, "H W 3"], Bool[Array, "H W"]]:
+    """Unit rays (camera frame) and validity of every pixel centre: a per-calibration constant that
+    `pixel_points`, `analytic_flow` and `fisheye_ground_truth` accept precomputed (``rays=``), which
+    saves one fisheye unprojection (a Newton solve per pixel) per call."""
+    return camera.unproject(camera.pixel_grid(dtype))
+
+
 def pixel_points(
-    camera: AbstractCamera, range_m: Float[ArrayLike, "H W"], *, dtype=None
+    camera: AbstractCamera, range_m: Float[ArrayLike, "H W"], *, dtype=None,
+    rays: tuple[Float[ArrayLike, "H W 3"], Bool[ArrayLike, "H W"]] | None = None,
 ) -> tuple[Float[Array, "H W 3"], Bool[Array, "H W"]]:
     """Camera-frame 3D point of every pixel centre: ``origin + range * ray`` (metres). ``range_m``
-    is the Euclidean range along the ray (for `Orthographic`, the distance from the image plane)."""
+    is the Euclidean range along the ray (for `Orthographic`, the distance from the image plane);
+    ``rays`` optionally gives `pixel_rays` precomputed."""
     r = jnp.asarray(range_m)
     dtype = dtype or (r.dtype if jnp.issubdtype(r.dtype, jnp.floating) else jnp.float32)
     grid = camera.pixel_grid(dtype)
     if tuple(r.shape[-2:]) != tuple(grid.shape[:2]):
         raise ValueError(f"pixel_points: range map {r.shape} does not match the camera's image {grid.shape[:2]}")
-    rays, ok = camera.unproject(grid)
+    rays, ok = camera.unproject(grid) if rays is None else (jnp.asarray(rays[0]), jnp.asarray(rays[1], bool))
     pts = camera.ray_origins(grid).astype(dtype) + r.astype(dtype)[..., None] * rays.astype(dtype)
     return jnp.where(ok[..., None], pts, 0.0), ok
 
@@ -92,6 +101,7 @@ def analytic_flow(
     target_range_m: Float[ArrayLike, "H W"] | None = None,
     occlusion_rel_tol: float = OCCLUSION_REL_TOL,
     valid: Bool[ArrayLike, "H W"] | None = None,
+    rays: tuple[Float[ArrayLike, "H W 3"], Bool[ArrayLike, "H W"]] | None = None,
 ) -> FlowField:
     """Optical flow of every source pixel from its range, its actor and the poses.
 
@@ -103,6 +113,7 @@ def analytic_flow(
       the target instant (`rigid_motion` of the actors' transforms); ``A`` may be 0;
     - ``camera_to_world_*``: camera (OpenCV) -> world at the source and target instants;
     - ``target_camera``: the model projecting at the target (default ``camera``: the same camera);
+    - ``rays``: the source camera's `pixel_rays`, precomputed (optional);
     - ``target_range_m``: range map of the target image; when given, points hidden at the target
       (their predicted range exceeds every one of the 4 nearest target ranges by more than
       ``occlusion_rel_tol``) are not `valid`.
@@ -112,7 +123,7 @@ def analytic_flow(
     tgt_cam = camera if target_camera is None else target_camera
     r = jnp.asarray(range_m)
     dtype = r.dtype if jnp.issubdtype(r.dtype, jnp.floating) else jnp.float32
-    pts, ok = pixel_points(camera, r, dtype=dtype)
+    pts, ok = pixel_points(camera, r, dtype=dtype, rays=rays)
     if valid is not None:
         ok = ok & jnp.asarray(valid, bool)
     world = camera_to_world_source.apply(pts).astype(dtype)
@@ -120,16 +131,19 @@ def analytic_flow(
     rot = actor_motion.rotation_matrix.astype(dtype)
     if rot.shape[0] > 0:
         k = jnp.clip(idx, 0, rot.shape[0] - 1)
-        moved = jnp.einsum("...ij,...j->...i", rot[k], world) + actor_motion.translation.astype(dtype)[k]
+        moved = jnp.sum(rot[k] * world[..., None, :], axis=-1) + actor_motion.translation.astype(dtype)[k]
         world = jnp.where((idx >= 0)[..., None], moved, world)
     p_tgt = camera_to_world_target.inverse().apply(world).astype(dtype)
     uv, ok_proj = tgt_cam.project(p_tgt)
     uv = uv.astype(dtype)
     in_image = ok & ok_proj & tgt_cam.contains(uv)
     grid = camera.pixel_grid(dtype)
-    rays_t, ok_t = tgt_cam.unproject(uv)
-    pred_range = jnp.sum((p_tgt - tgt_cam.ray_origins(uv).astype(dtype)) * rays_t.astype(dtype), axis=-1)
-    in_image = in_image & ok_t
+    if tgt_cam.is_central:
+        pred_range = jnp.sqrt(jnp.sum(p_tgt * p_tgt, axis=-1))
+    else:
+        rays_t, ok_t = tgt_cam.unproject(uv)
+        pred_range = jnp.sum((p_tgt - tgt_cam.ray_origins(uv).astype(dtype)) * rays_t.astype(dtype), axis=-1)
+        in_image = in_image & ok_t
     vis = in_image
     if target_range_m is not None:
         taps = _sample_taps(jnp.asarray(target_range_m).astype(dtype), uv)

@@ -59,13 +59,6 @@ def _tiles(x: Array, tile: int, fill) -> Array:
     return x.reshape((th * tw, tile * tile) + x.shape[4:])
 
 
-def _untile(x: Array, h: int, w: int, tile: int) -> Array:
-    th, tw = -(-h // tile), -(-w // tile)
-    x = x.reshape((th, tw, tile, tile) + x.shape[2:])
-    x = jnp.swapaxes(x, 1, 2).reshape((th * tile, tw * tile) + x.shape[4:])
-    return x[:h, :w]
-
-
 def _candidates(points_world, pixel_class, boxes: Boxes3D, tile: int, reach: float):
     """Per tile, which boxes may hold one of its instance pixels: the world AABB of the tile's
     instance points against each box's world AABB grown by ``reach``. Returns ``(T, B)``."""
@@ -101,6 +94,22 @@ def max_box_candidates(
 _jit_candidates = jax.jit(_candidates, static_argnums=(3, 4))
 
 
+def _plan(points_world, pixel_class, boxes: Boxes3D, tile: int, reach: float):
+    """``(max candidates per tile, number of tiles holding instance pixels)``: the static sizes."""
+    cand = _candidates(points_world, pixel_class, boxes, tile, reach)
+    busy = jnp.any(_tiles(_pixel_groups(pixel_class), tile, 0) > 0, axis=1)
+    return jnp.max(jnp.sum(cand, axis=-1)), jnp.sum(busy)
+
+
+_jit_plan = jax.jit(_plan, static_argnums=(3, 4))
+
+
+def tile_capacity(n: int) -> int:
+    """Static capacity for ``n`` culling tiles holding instance pixels: the next power of two (at
+    least 64), so that frames of similar content share one compilation."""
+    return max(64, 1 << max(int(n) - 1, 0).bit_length())
+
+
 def instance_segmentation(
     points_world: Float[ArrayLike, "H W 3"],
     pixel_class: Int[ArrayLike, "H W"],
@@ -111,6 +120,7 @@ def instance_segmentation(
     fallback_m: float = FALLBACK_DISTANCE_M,
     tile: int = TILE_SIZE,
     max_candidates: int | None = None,
+    capacity: int | None = None,
 ) -> InstanceMap:
     """Assign every instance-class pixel to the actor whose 3D box holds its point.
 
@@ -132,7 +142,10 @@ def instance_segmentation(
     AABB (grown by the larger of the two margins) meets the AABB of the tile's instance points and
     whose class is consistent with one of them. ``max_candidates`` (static) bounds the candidates
     per tile; ``None`` computes the exact bound on the host first (`max_box_candidates`; not inside
-    `jax.jit`). Cost: ``pixels x max_candidates`` box tests plus ``tiles x boxes`` AABB tests.
+    `jax.jit`). Only the tiles holding instance pixels are tested: they are gathered into a static
+    ``capacity`` (default: `tile_capacity` of their count, computed on the host with the candidate
+    bound; inside `jax.jit` pass it, or 0 to test every tile). Cost: ``busy tiles x tile² x
+    max_candidates`` box tests plus ``tiles x boxes`` AABB tests.
     """
     pts = jnp.asarray(points_world)
     cls = jnp.asarray(pixel_class).astype(jnp.int32)
@@ -140,27 +153,43 @@ def instance_segmentation(
         raise ValueError(f"instance_segmentation: points {pts.shape} and classes {cls.shape} must be (H, W, 3) and (H, W)")
     if valid is not None:
         cls = jnp.where(jnp.asarray(valid, bool), cls, -1)
-    if max_candidates is None:
+    if max_candidates is None or capacity is None:
         if isinstance(pts, jax.core.Tracer):
-            raise ValueError("instance_segmentation: pass a static max_candidates inside jax.jit")
-        max_candidates = max_box_candidates(pts, cls, boxes, tile=tile, margin_m=margin_m, fallback_m=fallback_m)
+            raise ValueError("instance_segmentation: pass static max_candidates and capacity inside jax.jit")
+        k_host, n_host = _jit_plan(pts, cls, boxes, int(tile), float(max(margin_m, fallback_m)))
+        max_candidates = int(k_host) if max_candidates is None else max_candidates
+        capacity = tile_capacity(int(n_host)) if capacity is None else capacity
     k = int(min(max(max_candidates, 1), max(boxes.num_boxes, 1)))
-    return _jit_assign(pts, cls, boxes, float(margin_m), float(fallback_m), int(tile), k)
+    return _jit_assign(pts, cls, boxes, float(margin_m), float(fallback_m), int(tile), k, int(capacity))
 
 
-def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: int, k: int) -> InstanceMap:
+def _untile(x: Array, h: int, w: int, tile: int) -> Array:
+    th, tw = -(-h // tile), -(-w // tile)
+    x = x.reshape((th, tw, tile, tile) + x.shape[2:])
+    x = jnp.swapaxes(x, 1, 2).reshape((th * tile, tw * tile) + x.shape[4:])
+    return x[:h, :w]
+
+
+def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: int, k: int, capacity: int = 0) -> InstanceMap:
     h, w = cls.shape
     dtype = pts.dtype
+    grp_img = _pixel_groups(cls)
     if boxes.num_boxes == 0:
         none = jnp.full((h, w), -1, jnp.int32)
-        un = _pixel_groups(cls) > 0
-        return InstanceMap(none, jnp.zeros((h, w), jnp.int32), none, un, jnp.zeros((h, w), bool))
+        return InstanceMap(none, jnp.zeros((h, w), jnp.int32), none, grp_img > 0, jnp.zeros((h, w), bool))
     cand = _candidates(pts, cls, boxes, tile, max(margin_m, fallback_m))  # (T, B)
-    score = jnp.where(cand, 1, 0)
-    _, top = jax.lax.top_k(score, k)  # (T, K) candidates first
+    _, top = jax.lax.top_k(cand.astype(jnp.int32), k)  # (T, K) candidates first
     top_ok = jnp.take_along_axis(cand, top, axis=1)
     tp = _tiles(pts, tile, 0.0)  # (T, P, 3)
-    tg = _tiles(_pixel_groups(cls), tile, 0)  # (T, P)
+    tg = _tiles(grp_img, tile, 0)  # (T, P)
+    n_tiles = tg.shape[0]
+    if capacity > 0:
+        # Only the tiles holding instance pixels (static capacity sized on the host).
+        sel = jnp.nonzero(jnp.any(tg > 0, axis=1), size=min(capacity, n_tiles), fill_value=n_tiles)[0]
+        sel_ok = sel < n_tiles
+        safe = jnp.where(sel_ok, sel, 0)
+        tp, tg = tp[safe], jnp.where(sel_ok[:, None], tg[safe], 0)
+        top, top_ok = top[safe], top_ok[safe] & sel_ok[:, None]
     rot_all = boxes.box_to_world.rotation_matrix.astype(dtype)
     ctr_all = boxes.box_to_world.translation.astype(dtype)
     he_all = boxes.half_extent.astype(dtype)
@@ -172,7 +201,10 @@ def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: 
     def step(j, carry):
         in_d, in_i, near_d, near_i = carry
         b = top[:, j]  # (T,)
-        local = jnp.einsum("tji,tpj->tpi", rot_all[b], tp - ctr_all[b][:, None, :])
+        # R^T d as broadcast multiply-adds (a batched 3 x 3 matmul per tile is slow on CPU).
+        r = rot_all[b][:, None, :, :]  # (T, 1, 3, 3)
+        d = (tp - ctr_all[b][:, None, :])[..., :, None]  # (T, P, 3, 1)
+        local = jnp.sum(r * d, axis=-2)
         he = he_all[b][:, None, :]
         a = jnp.abs(local)
         ok = top_ok[:, j][:, None] & (grp_all[b][:, None] == tg) & (tg > 0)
@@ -189,23 +221,25 @@ def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: 
     _, in_i, _, near_i = jax.lax.fori_loop(0, k, step, init)
     any_in = in_i >= 0
     any_near = (near_i >= 0) & ~any_in
-    chosen = jnp.where(any_in, in_i, near_i)
-    assigned = any_in | any_near
-    box_index = jnp.where(assigned, chosen, -1).astype(jnp.int32)
-    box_index = _untile(box_index, h, w, tile)
+    chosen = jnp.where(any_in, in_i, near_i).astype(jnp.int32)
+    if capacity > 0:
+        full_shape = (n_tiles, shape[1])
+        chosen = jnp.full(full_shape, -1, jnp.int32).at[sel].set(chosen, mode="drop")
+        any_near = jnp.zeros(full_shape, bool).at[sel].set(any_near, mode="drop")
+    box_index = _untile(chosen, h, w, tile)
     fallback = _untile(any_near, h, w, tile)
-    safe = jnp.clip(box_index, 0, boxes.num_boxes - 1)
+    safe_b = jnp.clip(box_index, 0, boxes.num_boxes - 1)
     has = box_index >= 0
     return InstanceMap(
         box_index=box_index,
-        actor_id=jnp.where(has, boxes.actor_id[safe], 0).astype(jnp.int32),
-        class_id=jnp.where(has, boxes.class_id[safe], -1).astype(jnp.int32),
-        unassigned=(_pixel_groups(cls) > 0) & ~has,
+        actor_id=jnp.where(has, boxes.actor_id[safe_b], 0).astype(jnp.int32),
+        class_id=jnp.where(has, boxes.class_id[safe_b], -1).astype(jnp.int32),
+        unassigned=(grp_img > 0) & ~has,
         fallback=fallback,
     )
 
 
-_jit_assign = jax.jit(_assign, static_argnums=(3, 4, 5, 6))
+_jit_assign = jax.jit(_assign, static_argnums=(3, 4, 5, 6, 7))
 
 
 def instance_colors(actor_id: Int[ArrayLike, "*batch"]) -> UInt8[Array, "*batch 3"]:

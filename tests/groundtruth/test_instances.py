@@ -56,6 +56,9 @@ def test_culled_assignment_equals_brute_force():
     # float32 kernel vs float64 reference: only points within rounding of a face may differ.
     assert agree.mean() > 0.999, agree.mean()
     assert (want >= 0).sum() > 800
+    # Testing every tile in place (capacity 0) gives the same labels as the busy-tile gather.
+    dense = gt.instance_segmentation(jnp.asarray(pts), jnp.asarray(cls), boxes, margin_m=0.0, fallback_m=0.0, tile=8, capacity=0)
+    np.testing.assert_array_equal(np.asarray(dense.box_index), got)
 
 
 def test_fallback_and_unassigned_pixels():
