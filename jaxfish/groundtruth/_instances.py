@@ -197,20 +197,24 @@ def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: 
     big = jnp.asarray(np.inf, dtype)
     margin = jnp.asarray(margin_m, dtype)
     reach = jnp.asarray(fallback_m, dtype)
+    tx = [tp[..., i] for i in range(3)]  # coordinate planes (T, P)
 
     def step(j, carry):
         in_d, in_i, near_d, near_i = carry
         b = top[:, j]  # (T,)
-        # R^T d as broadcast multiply-adds (a batched 3 x 3 matmul per tile is slow on CPU).
-        r = rot_all[b][:, None, :, :]  # (T, 1, 3, 3)
-        d = (tp - ctr_all[b][:, None, :])[..., :, None]  # (T, P, 3, 1)
-        local = jnp.sum(r * d, axis=-2)
-        he = he_all[b][:, None, :]
-        a = jnp.abs(local)
+        # R^T d written out per component on (T, P) planes (no batched tiny matmuls, no (T, P, 3, 3)
+        # intermediates: both are slow on CPU).
+        r = rot_all[b]  # (T, 3, 3)
+        c = ctr_all[b]
+        he = he_all[b]
+        d = [tx[c_] - c[:, c_][:, None] for c_ in range(3)]  # 3 x (T, P)
+        a = [jnp.abs(d[0] * r[:, 0, i][:, None] + d[1] * r[:, 1, i][:, None] + d[2] * r[:, 2, i][:, None]) for i in range(3)]
+        h3 = [he[:, i][:, None] for i in range(3)]
         ok = top_ok[:, j][:, None] & (grp_all[b][:, None] == tg) & (tg > 0)
-        depth = jnp.max(a / he, axis=-1)
-        inside = ok & jnp.all(a <= he + margin, axis=-1) & (depth < in_d)
-        outside = jnp.sqrt(jnp.sum(jnp.maximum(a - he, 0.0) ** 2, axis=-1))
+        depth = jnp.maximum(jnp.maximum(a[0] / h3[0], a[1] / h3[1]), a[2] / h3[2])
+        inside = ok & (a[0] <= h3[0] + margin) & (a[1] <= h3[1] + margin) & (a[2] <= h3[2] + margin) & (depth < in_d)
+        e = [jnp.maximum(a[i] - h3[i], 0.0) for i in range(3)]
+        outside = jnp.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
         closer = ok & (outside <= reach) & (outside < near_d)
         bj = jnp.broadcast_to(b[:, None], in_i.shape)
         return (jnp.where(inside, depth, in_d), jnp.where(inside, bj, in_i),

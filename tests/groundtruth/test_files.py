@@ -1,0 +1,84 @@
+"""From a capture directory to ground-truth files: the capture adapter reproduces the in-memory
+ground truth (up to CARLA's 24-bit depth encoding) and the writer produces SynWoodScape's layout."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxfish.io import (
+    CaptureReader,
+    capture_ground_truth,
+    read_boxes_2d_csv,
+    read_boxes_3d_pickle,
+    read_displacements,
+    read_events_npy,
+    read_flo,
+    read_label_png,
+    write_camera_ground_truth,
+    write_capture_header,
+    write_frame,
+)
+from jaxfish.scene import RADAR_DTYPE, SEMANTIC_LIDAR_DTYPE, CameraCapture, CameraImages, CaptureConfig, sensor_mounts
+
+
+@pytest.fixture(scope="module")
+def capture(sample, tmp_path_factory):
+    root = tmp_path_factory.mktemp("capture")
+    rig = {"FV": sample.calib}
+    config = CaptureConfig(face_size=sample.face_size)
+    write_capture_header(root, rig, config, sensor_mounts(rig, config), seed=0)
+    names = list(config.faces)
+    imgs = lambda f: {n: CameraImages(f.rgb[i], f.depth_m[i], f.semantic[i], f.actor_id[i]) for i, n in enumerate(names)}  # noqa: E731
+    rng = np.random.default_rng(0)
+    dvs = {}
+    for n in names:
+        ev = np.empty(200, np.dtype([("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("pol", "?")]))
+        ev["x"], ev["y"] = rng.integers(0, sample.face_size, 200), rng.integers(0, sample.face_size, 200)
+        ev["t"], ev["pol"] = np.sort(rng.integers(0, 10**8, 200)), rng.random(200) < 0.5
+        dvs[n] = ev
+    write_frame(root, sample.frame, cameras={"FV": CameraCapture(imgs(sample.faces_prev), imgs(sample.faces), dvs)}, views={},
+                lidar=np.zeros((0, 4), np.float32), semantic_lidar=np.empty(0, SEMANTIC_LIDAR_DTYPE),
+                radar=np.empty(0, RADAR_DTYPE), imu={}, gnss={})
+    reader = CaptureReader(root)
+    return reader, capture_ground_truth(reader, sample.frame.frame, "FV", lut=sample.lut), dvs
+
+
+def test_capture_adapter_matches_the_in_memory_ground_truth(sample, capture):
+    _, res, dvs = capture
+    t, ref = res["truth"], sample.truth
+    v = np.asarray(t.images.valid)
+    assert np.mean(np.asarray(t.instances.actor_id)[v] == np.asarray(ref.instances.actor_id)[v]) > 0.999
+    assert np.mean(np.asarray(t.semantic)[v] == np.asarray(ref.semantic)[v]) > 0.999
+    ok = np.asarray(t.flow.valid) & np.asarray(ref.flow.valid)
+    assert np.median(np.linalg.norm(np.asarray(t.flow.flow) - np.asarray(ref.flow.flow), axis=-1)[ok]) < 1e-2
+    ev = res["events"]
+    assert np.all(np.diff(ev["t"]) >= 0)
+    fan = np.asarray(__import__("jaxfish").groundtruth.event_map_from_lut(sample.lut).fanout)
+    s = sample.face_size
+    want = sum(int(fan[(i * s + d["y"].astype(int)) * s + d["x"].astype(int)].sum()) for i, d in enumerate(dvs.values()))
+    assert ev.shape[0] == want
+
+
+def test_writer_produces_the_synwoodscape_layout(sample, capture, tmp_path):
+    _, res, _ = capture
+    paths = write_camera_ground_truth(tmp_path, "00003", "FV", res)
+    assert all(p.is_file() for p in paths)
+    rel = {str(p.relative_to(tmp_path)) for p in paths}
+    for want in ("rgb_images/00003_FV.png", "previous_images/00003_FV_prev.png", "depth_maps/raw_data/00003_FV.npy",
+                 "semantic_annotations/gtLabels/00003_FV.png", "semantic_annotations/rgbLabels/00003_FV.png",
+                 "instance_annotations/gtLabels/00003_FV.png", "motion_annotations/gtLabels/00003_FV.png",
+                 "optical_flow/raw_data/00003_FV.flo", "optical_flow/color_coded/00003_FV.png",
+                 "dvs_signals/raw_data/00003_FV.npy", "box_2d_annotations/00003_FV.txt", "box_3d_annotations/00003.pkl"):
+        assert want in rel
+    t = res["truth"]
+    np.testing.assert_array_equal(read_label_png(tmp_path / "instance_annotations/gtLabels/00003_FV.png"), np.asarray(t.instances.actor_id))
+    np.testing.assert_array_equal(read_label_png(tmp_path / "semantic_annotations/gtLabels/00003_FV.png"), np.asarray(t.semantic))
+    flo = read_flo(tmp_path / "optical_flow/raw_data/00003_FV.flo")
+    np.testing.assert_array_equal(flo[np.asarray(t.flow.valid)], np.asarray(t.flow.flow)[np.asarray(t.flow.valid)])
+    np.testing.assert_array_equal(read_events_npy(tmp_path / "dvs_signals/raw_data/00003_FV.npy"), res["events"])
+    rows = read_boxes_2d_csv(tmp_path / "box_2d_annotations/00003_FV.txt")
+    assert len(rows) == int(np.asarray(t.boxes_2d.present).sum()) and all(r[1] in (4, 10, 21, 24) for r in rows)
+    box3d = read_boxes_3d_pickle(tmp_path / "box_3d_annotations/00003.pkl")
+    assert set(box3d) == {a["id"] for a in res["actors"]}
+    assert read_displacements(tmp_path / "motion_annotations/displacements/00003.txt").keys() == box3d.keys()
