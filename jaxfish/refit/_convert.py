@@ -12,8 +12,14 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..cameras import AbstractCamera
-from ._fit import Correspondences, jit_project, jit_unproject, refit
-from ._parameters import camera_from_intrinsics, canonical_model_name
+from ._fit import Correspondences, _default_tolerances, _free_mask, _solve, jit_project, jit_unproject
+from ._parameters import (
+    camera_from_intrinsics,
+    canonical_model_name,
+    intrinsics_vector,
+    parameter_names,
+    with_intrinsics,
+)
 
 #: Incidence angles closer than this to pi (radians) are not sampled: the ray straight behind the
 #: optical axis has no azimuth, and is invalid in every model.
@@ -186,13 +192,21 @@ def convert_camera(
         init = target
     else:
         init = _initial_from(source, canonical_model_name(target), uv_all[:n_init], ok_all[:n_init], top, dtype)
-    weight = ok.astype(uv_src.dtype)
-    result = refit(init, Correspondences(rays, uv_src, None, weight), fit_pose=False, fixed=fixed,
-                   max_steps=max_steps)
-    stats = _compare(result.camera, source, rays, uv_src, ok)
+    # The refit solve without covariance or residual summary (conversion reports its own errors).
+    p0 = intrinsics_vector(init).astype(dtype)
+    init = with_intrinsics(init, p0)
+    corr = Correspondences(rays, uv_src, None, ok.astype(dtype))
+    free = jnp.asarray(_free_mask(parameter_names(init), fixed))
+    rtol, atol = _default_tolerances(dtype)
+    p, _, _, _, steps, converged = _solve(
+        init, p0, free, jnp.eye(3, dtype=dtype)[None], jnp.zeros((1, 3), dtype), corr, False, jnp.asarray(0),
+        jnp.asarray(1.0, dtype), int(max_steps), rtol, atol, with_covariance=False,
+    )
+    camera = with_intrinsics(init, p)
+    stats = _compare(camera, source, rays, uv_src, ok)
     return ConversionResult(
-        result.camera, *stats[:4], theta_max=jnp.asarray(top, dtype), num_samples=jnp.sum(ok),
-        num_target_invalid=stats[-1], num_steps=result.num_steps, converged=result.converged,
+        camera, *stats[:4], theta_max=jnp.asarray(top, dtype), num_samples=jnp.sum(ok),
+        num_target_invalid=stats[-1], num_steps=steps, converged=converged,
     )
 
 

@@ -139,7 +139,8 @@ class RefitResult(eqx.Module):
       and ``view{v}.tx, .ty, .tz`` (metres) for fitted poses; `parameters` their values (pose
       perturbations are 0 at the solution);
     - `covariance` ``(P, P)`` of the free parameters: ``σ² (JᵀJ)⁺`` at the solution with
-      ``σ² = sum rho / (2N - P)`` (Gauss-Newton approximation, robust weights included);
+      ``σ² = sum rho / (2N - P)`` (Gauss-Newton approximation, robust weights included; not finite
+      when the data do not determine the free parameters);
       `standard_deviations` its root diagonal;
     - `num_steps`, `converged`: from optimistix (``converged`` = solver reported success).
     """
@@ -177,7 +178,6 @@ def jit_unproject(camera: AbstractCamera, uv):
     return camera.unproject(uv)
 
 
-@eqx.filter_jit
 def _summarise(cam, rot, t, corr):
     v = rot.shape[0]
     pc = jnp.einsum("nij,nj->ni", rot[corr.view], corr.points) + t[corr.view]
@@ -259,7 +259,8 @@ def reprojection_residuals(
 
 
 @eqx.filter_jit
-def _solve(camera, p0, free, rot0, t0, corr, fit_pose, loss_code, loss_scale, max_steps, rtol, atol):
+def _solve(camera, p0, free, rot0, t0, corr, fit_pose, loss_code, loss_scale, max_steps, rtol, atol,
+           with_covariance=True):
     """One compile per (model, N, n_views, fit_pose): the fixed mask, loss and its scale are traced."""
     dtype = p0.dtype
     n_pose = rot0.shape[0] * 6 if fit_pose else 0
@@ -280,15 +281,20 @@ def _solve(camera, p0, free, rot0, t0, corr, fit_pose, loss_code, loss_scale, ma
         max_steps=max_steps, throw=False,
     )
     p, rot, t = _unpack(sol.value, p0, scales, rot0, t0, fit_pose)
+    steps, ok = sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+    if not with_covariance:
+        return p, rot, t, None, steps, ok
     # Covariance in natural units around the solution (pose perturbations re-based at 0).
     args_sol = (camera, p, free_all, rot, t, corr, fit_pose, loss_code, loss_scale)
     jac = jax.jacfwd(lambda zz: _residual_fn(zz, args_sol).ravel())(z0)
     r = _residual_fn(z0, args_sol).ravel()
     dof = jnp.maximum(2 * jnp.sum(corr.weight > 0).astype(dtype) - jnp.sum(free_all), 1.0)
     sigma2 = jnp.sum(r * r) / dof
-    cov = sigma2 * jnp.linalg.pinv(jac.T @ jac, hermitian=True)
+    # Fixed parameters have zero columns: put 1 on their diagonal, invert, zero them again.
+    fixed_diag = jnp.diag(1.0 - free_all)
+    cov = sigma2 * (jnp.linalg.inv(jac.T @ jac + fixed_diag) - fixed_diag)
     cov = 0.5 * (cov + cov.T)
-    return p, rot, t, cov, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+    return p, rot, t, (cov, _summarise(with_intrinsics(camera, p), rot, t, corr)), steps, ok
 
 
 def _default_tolerances(dtype) -> tuple[float, float]:
@@ -352,7 +358,7 @@ def refit(
     if 2 * int(used.sum()) < n_params:
         raise ValueError(f"refit: {int(used.sum())} correspondences cannot determine {n_params} free parameters")
     default_rtol, default_atol = _default_tolerances(dtype)
-    p, rot, t, cov, steps, ok = _solve(
+    p, rot, t, (cov, summary), steps, ok = _solve(
         camera, p0, jnp.asarray(free), rot0, t0, corr, bool(fit_pose), jnp.asarray(LOSSES.index(loss)),
         jnp.asarray(loss_scale_px, dtype), int(max_steps),
         default_rtol if rtol is None else float(rtol), default_atol if atol is None else float(atol),
@@ -361,7 +367,7 @@ def refit(
     cov = cov[np.ix_(keep, keep)]
     free_idx = np.asarray([i for i, f in enumerate(free) if f], dtype=np.int32)
     cam = with_intrinsics(camera, p)
-    res, valid, rms, per_view = _summarise(cam, rot, t, corr)
+    res, valid, rms, per_view = summary
     pose_names = tuple(f"view{i}.{c}" for i in range(v) for c in ("rx", "ry", "rz", "tx", "ty", "tz")) if fit_pose else ()
     free_names = tuple(n for n, f in zip(names, free, strict=True) if f) + pose_names
     values = jnp.concatenate([p[free_idx], jnp.zeros(len(pose_names), dtype)])
