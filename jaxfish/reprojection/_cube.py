@@ -13,8 +13,6 @@ from .._numerics import float_dtype, resolve_dtype
 from ..cameras import AbstractCamera, Pinhole, WoodScapeFisheye
 from ..transforms import UNREAL_CAMERA_TO_OPENCV, Pose, carla_rotation_matrix
 
-#: Face name -> CARLA rotation ``(pitch, yaw, roll)`` in degrees of the face camera relative to the
-#: fisheye camera's own CARLA transform (Unreal frame). ``back`` is optional.
 CUBE_FACE_ROTATIONS: dict[str, tuple[float, float, float]] = {
     "front": (0.0, 0.0, 0.0),
     "left": (0.0, -90.0, 0.0),
@@ -23,9 +21,12 @@ CUBE_FACE_ROTATIONS: dict[str, tuple[float, float, float]] = {
     "bottom": (-90.0, 0.0, 0.0),
     "back": (0.0, 180.0, 0.0),
 }
-#: The five faces SynWoodScape renders (no back face: a 190-degree lens never needs it).
+"""Face name -> CARLA rotation ``(pitch, yaw, roll)`` in degrees of the face camera relative to the
+fisheye camera's own CARLA transform (Unreal frame). ``back`` is optional."""
 FIVE_FACES: tuple[str, ...] = ("front", "left", "right", "top", "bottom")
+"""The five faces SynWoodScape renders (no back face: a 190-degree lens never needs it)."""
 SIX_FACES: tuple[str, ...] = FIVE_FACES + ("back",)
+"""The five faces plus ``back``: a rig that sees every direction."""
 
 
 def face_to_camera_rotation(face: str, *, dtype=None) -> np.ndarray:
