@@ -43,6 +43,7 @@ from ._images import read_image as read_image
 from ._images import write_image as write_image
 from ._labels import PALETTE_ATTRIBUTE as PALETTE_ATTRIBUTE
 from ._labels import boxes_2d_rows as boxes_2d_rows
+from ._labels import capture_ground_truth as capture_ground_truth
 from ._labels import read_boxes_2d_csv as read_boxes_2d_csv
 from ._labels import read_boxes_3d_pickle as read_boxes_3d_pickle
 from ._labels import read_displacements as read_displacements
@@ -51,6 +52,7 @@ from ._labels import read_palette as read_palette
 from ._labels import synwoodscape_palette_dict as synwoodscape_palette_dict
 from ._labels import write_boxes_2d_csv as write_boxes_2d_csv
 from ._labels import write_boxes_3d_pickle as write_boxes_3d_pickle
+from ._labels import write_camera_ground_truth as write_camera_ground_truth
 from ._labels import write_color_png as write_color_png
 from ._labels import write_depth_npy as write_depth_npy
 from ._labels import write_displacements as write_displacements

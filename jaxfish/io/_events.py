@@ -88,9 +88,12 @@ def read_events_tonic(path: str | os.PathLike) -> tuple[np.ndarray, str, tuple[i
 def write_events_color(path: str | os.PathLike, events: np.ndarray, *, width: int, height: int) -> Path:
     """Write the colour rendering of events (`jaxfish.groundtruth.events_to_color`: blue positive,
     red negative, white background) as an RGB PNG."""
+    import jax
+
     from ..groundtruth import events_to_color
 
     ev = np.asarray(events)
     pol = ev["pol"] if "pol" in ev.dtype.names else ev["p"] > 0
-    img = events_to_color(ev["x"].astype(np.int32), ev["y"].astype(np.int32), pol, width=width, height=height)
+    img = jax.jit(events_to_color, static_argnames=("width", "height"))(
+        ev["x"].astype(np.int32), ev["y"].astype(np.int32), pol, width=int(width), height=int(height))
     return write_image(path, np.asarray(img))

@@ -81,7 +81,9 @@ def write_flow_color(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarra
                      *, max_radius: float | None = None) -> Path:
     """Write the standard colour coding of a flow field (`jaxfish.groundtruth.flow_to_color`) as
     an RGB PNG."""
+    import jax
+
     from ..groundtruth import flow_to_color
 
-    rgb = flow_to_color(np.asarray(flow, np.float32), valid=valid, max_radius=max_radius)
+    rgb = jax.jit(flow_to_color, static_argnames="max_radius")(np.asarray(flow, np.float32), valid=valid, max_radius=max_radius)
     return write_image(path, np.asarray(rgb))

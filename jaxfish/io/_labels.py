@@ -179,3 +179,135 @@ def write_depth_npy(path: str | os.PathLike, depth_m: np.ndarray) -> Path:
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.save(fh, np.asarray(depth_m, np.float32), allow_pickle=False)
     return path
+
+
+# ---------------------------------------------------------------------------- capture -> ground truth
+def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None, backward_flow: bool = False,
+                         carla_version: str | None = None, **options: Any) -> dict[str, Any]:
+    """Everything `jaxfish.groundtruth.fisheye_ground_truth` computes for one fisheye camera of a
+    capture frame (`CaptureReader`), plus its events mapped to the fisheye.
+
+    ``lut`` (cube -> fisheye `Lut` of this camera) and ``rays`` (`pixel_rays`) are per-calibration
+    constants: pass them when processing many frames (built here otherwise). Returns ``{"truth":
+    CameraGroundTruth, "boxes_prev", "boxes": Boxes3D, "vehicle_to_world_prev", "vehicle_to_world":
+    Pose, "events": CARLA-dtype fisheye events (t in ns, time order), "camera": the fisheye
+    model, "actors": the actor records}``.
+    """
+    import jax.numpy as jnp
+
+    from .. import groundtruth as gt
+    from ..reprojection import CubeRig, build_lut
+    from ._capture import CaptureError
+    from ._carla import DVS_EVENT_DTYPE
+
+    rig = reader.rig()
+    if camera not in rig:
+        raise CaptureError(f"{reader.root}/calibration: camera {camera!r} missing (have {sorted(rig)})")
+    calib = rig[camera].astype(jnp.float32)
+    cam = calib.camera.astype(jnp.float32)
+    faces = tuple(reader.faces)
+    if lut is None:
+        lut = build_lut(CubeRig(int(reader.meta.get("face_size", 0)) or reader.face(frame, camera, faces[0]).rgb.shape[0],
+                                faces=faces, dtype=jnp.float32), cam)
+    actors = reader.actors(frame)
+    ego = reader.ego(frame)
+    try:
+        boxes_prev = gt.boxes_from_actors(actors, "t-1")
+        boxes = gt.boxes_from_actors(actors, "t")
+        v2w_p = gt.vehicle_to_world_from_carla(np.asarray(ego["transform_prev"]["location"], np.float32),
+                                               np.asarray(ego["transform_prev"]["rotation"], np.float32))
+        v2w = gt.vehicle_to_world_from_carla(np.asarray(ego["transform"]["location"], np.float32),
+                                             np.asarray(ego["transform"]["rotation"], np.float32))
+    except (KeyError, TypeError, ValueError) as e:
+        raise CaptureError(f"{reader.root}: frame {frame}: malformed actors.json / ego.json ({e})") from e
+    tags = str(reader.meta.get("carla_semantic_tags", "0.9.10"))
+    version = carla_version or ("0.9.10" if tags in ("0.9.10", "0.9.11", "0.9.12", "0.9.13") else "0.9.14")
+    truth = gt.fisheye_ground_truth(lut, cam, calib.camera_to_vehicle, reader.faces_stack(frame, camera, "prev"),
+                                    reader.faces_stack(frame, camera, "curr"), boxes_prev, boxes, v2w_p, v2w,
+                                    backward_flow=backward_flow, carla_version=version, rays=rays, **options)
+    cols = {k: [] for k in ("face", "x", "y", "t", "pol")}
+    for i, face in enumerate(faces):
+        ev = reader.dvs(frame, camera, face)
+        cols["face"].append(np.full(ev.shape[0], i, np.int32))
+        for k in ("x", "y", "t", "pol"):
+            cols[k].append(ev[k])
+    cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
+    events = np.empty(0, DVS_EVENT_DTYPE)
+    if cat["t"].size:
+        emap = gt.event_map_from_lut(lut)
+        mapped = gt.compact_events(gt.map_events(emap, cat["face"], cat["x"].astype(np.int32), cat["y"].astype(np.int32),
+                                                 cat["t"].astype(np.int64), cat["pol"].astype(bool)))
+        events = np.empty(mapped["x"].shape[0], DVS_EVENT_DTYPE)
+        events["x"], events["y"], events["t"], events["pol"] = mapped["x"], mapped["y"], mapped["t"], mapped["polarity"]
+    return {"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
+            "vehicle_to_world": v2w, "events": events, "camera": cam, "actors": actors}
+
+
+def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str, result: Mapping[str, Any], *,
+                              motion_threshold_m: float = 0.5) -> list[Path]:
+    """Write one camera's ground truth (a `capture_ground_truth` result) in SynWoodScape's layout
+    under ``root`` with file stem ``{sample}_{camera}``: ``rgb_images``, ``previous_images``,
+    ``depth_maps/raw_data`` (range, ``.npy``) and ``depth_maps/z_depth`` (``.npy``),
+    ``semantic_annotations``, ``instance_annotations`` (actor ids) and ``motion_annotations``
+    (0/255) as ``gtLabels`` + ``rgbLabels``, ``optical_flow/{raw_data .flo, kitti .png,
+    color_coded .png}`` (forward, t-1 -> t on the t-1 grid), ``dvs_signals/{raw_data .npy (CARLA
+    dtype, ns), tonic .npz (µs), color_coded .png}``, ``box_2d_annotations`` (visible boxes) and
+    ``box_2d_full_annotations`` (full extent) CSV, ``box_3d_annotations/{sample}.pkl`` and
+    ``motion_annotations/displacements/{sample}.txt``. Returns the paths written."""
+    import jax
+
+    from .. import groundtruth as gt
+    from ._events import write_events_color, write_events_npy, write_events_tonic
+    from ._flow import write_flo, write_flow_color, write_kitti_flow
+
+    colorize, inst_colors, z_depth = jax.jit(gt.colorize_labels), jax.jit(gt.instance_colors), jax.jit(gt.range_to_z_depth)
+    root = Path(root)
+    t = result["truth"]
+    boxes = result["boxes"]
+    stem = f"{sample}_{camera}"
+    out: list[Path] = []
+    add = out.append
+    h, w = np.asarray(t.images.valid).shape
+    add(write_image(root / "rgb_images" / f"{stem}.png", np.asarray(t.images.rgb)))
+    add(write_image(root / "previous_images" / f"{stem}_prev.png", np.asarray(t.images_prev.rgb)))
+    add(write_depth_npy(root / "depth_maps" / "raw_data" / f"{stem}.npy", np.asarray(t.images.range_m)))
+    add(write_depth_npy(root / "depth_maps" / "z_depth" / f"{stem}.npy",
+                        np.asarray(z_depth(result["camera"], t.images.range_m))))
+    pal = synwoodscape_palette_dict()
+    sem = np.asarray(t.semantic)
+    add(write_label_png(root / "semantic_annotations" / "gtLabels" / f"{stem}.png", sem))
+    add(write_color_png(root / "semantic_annotations" / "rgbLabels" / f"{stem}.png", np.asarray(colorize(sem)), pal))
+    ids = np.asarray(t.instances.actor_id)
+    add(write_label_png(root / "instance_annotations" / "gtLabels" / f"{stem}.png", ids))
+    add(write_color_png(root / "instance_annotations" / "rgbLabels" / f"{stem}.png", np.asarray(inst_colors(ids)),
+                        {"colors": "jaxfish.groundtruth.instance_colors(actor_id)", "background": [0, 0, 0]}))
+    mot = np.asarray(t.motion).astype(np.uint8) * 255
+    add(write_label_png(root / "motion_annotations" / "gtLabels" / f"{stem}.png", mot))
+    add(write_color_png(root / "motion_annotations" / "rgbLabels" / f"{stem}.png", np.repeat(mot[..., None], 3, -1),
+                        {"classes": ["static", "moving"], "colors": [[0, 0, 0], [255, 255, 255]],
+                         "threshold_m": motion_threshold_m}))
+    fl, fv = np.asarray(t.flow.flow), np.asarray(t.flow.valid)
+    add(write_flo(root / "optical_flow" / "raw_data" / f"{stem}.flo", np.where(fv[..., None], fl, 0.0)))
+    add(write_kitti_flow(root / "optical_flow" / "kitti" / f"{stem}.png", fl, fv))
+    add(write_flow_color(root / "optical_flow" / "color_coded" / f"{stem}.png", fl, fv))
+    ev = result["events"]
+    add(write_events_npy(root / "dvs_signals" / "raw_data" / f"{stem}.npy", ev))
+    add(write_events_tonic(root / "dvs_signals" / "tonic" / f"{stem}.npz", ev, width=w, height=h))
+    add(write_events_color(root / "dvs_signals" / "color_coded" / f"{stem}.png", ev, width=w, height=h))
+    cls = np.asarray(boxes.class_id)
+    add(write_boxes_2d_csv(root / "box_2d_annotations" / f"{stem}.txt",
+                           boxes_2d_rows(np.asarray(t.boxes_2d.xyxy), np.asarray(t.boxes_2d.present), cls)))
+    add(write_boxes_2d_csv(root / "box_2d_full_annotations" / f"{stem}.txt",
+                           boxes_2d_rows(np.asarray(t.boxes_2d_full.xyxy), np.asarray(t.boxes_2d_full.present), cls)))
+    world = np.asarray(boxes.corners(), np.float64)
+    veh = np.asarray(gt.boxes_in_frame(boxes, result["vehicle_to_world"].inverse()), np.float64)
+    names = gt.SYNWOODSCAPE_CLASSES
+    act = np.asarray(boxes.active)
+    box3d = {int(a): {"corners_world": world[i], "corners_vehicle": veh[i], "class_id": int(cls[i]),
+                      "class_name": names[int(cls[i])] if 0 <= int(cls[i]) < len(names) else "unknown"}
+             for i, a in enumerate(np.asarray(boxes.actor_id)) if act[i]}
+    add(write_boxes_3d_pickle(root / "box_3d_annotations" / f"{sample}.pkl", box3d))
+    disp = np.asarray(t.displacement_m)
+    add(write_displacements(root / "motion_annotations" / "displacements" / f"{sample}.txt",
+                            np.asarray(boxes.actor_id)[act], cls[act], disp[act], threshold_m=motion_threshold_m))
+    return out
