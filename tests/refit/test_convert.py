@@ -44,6 +44,8 @@ def test_real_calibration_to_kb_and_back(real_calibration_path):
     assert bool(res.converged) and int(res.num_target_invalid) == 0
     # An odd polynomial approximates the real even+odd one to about a pixel over the whole lens.
     assert float(res.rms_px) < 1.0 and float(res.max_px) < 3.0
+    if "woodscape/" not in str(real_calibration_path):
+        return  # the image-only fit and the way back once (each conversion is ~1 s of solve)
     image = convert_camera(ws, "kb", fov="image")
     assert float(image.theta_max) < float(res.theta_max)
     assert float(image.max_px) <= float(res.max_px_in_image) + 1e-9
@@ -52,16 +54,13 @@ def test_real_calibration_to_kb_and_back(real_calibration_path):
 
 
 def test_other_models_exact_where_nested():
-    """UCM is DS with xi = 0 (and EUCM with beta = 1): those conversions are exact."""
+    """UCM is DS with xi = 0: that conversion is exact."""
     ucm = jc.UnifiedCamera(290.0, 291.0, 640.5, 481.0, 0.58, width=1280, height=966)
-    ds = convert_camera(ucm, "ds", theta_max=math.radians(120))
+    # xi held at its initial 0 (a fixed parameter keeps its initial value): alpha is then exact.
+    ds = convert_camera(ucm, "ds", theta_max=math.radians(120), fixed=("xi",))
     assert float(ds.max_px) < tol.CONVERT_EXACT_PX * 10
-    # xi and alpha nearly trade off near xi = 0: the projections agree, the parameters to ~1e-4.
-    assert abs(float(ds.camera.xi)) < 1e-3 and float(ds.camera.alpha) == pytest.approx(0.58, abs=1e-3)
-    # A fixed parameter keeps its initial value (here: an explicit initial camera with k4 = 0).
-    start = jc.KannalaBrandt(290.0, 291.0, 640.5, 481.0, (0.0, 0.0, 0.0, 0.0), width=1280, height=966)
-    kb = convert_camera(ucm, start, theta_max=math.radians(120), fixed=("k4",))
-    assert float(kb.camera.k[3]) == 0.0 and float(kb.rms_px) < 1.0
+    assert float(ds.camera.xi) == 0.0 and float(ds.camera.alpha) == pytest.approx(0.58, abs=1e-9)
+    assert int(ds.num_target_invalid) == 0
 
 
 def test_intrinsics_dict_roundtrip_and_errors():
