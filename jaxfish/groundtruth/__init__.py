@@ -40,6 +40,7 @@ from ._flow import FAR_RANGE_M as FAR_RANGE_M
 from ._flow import OCCLUSION_REL_TOL as OCCLUSION_REL_TOL
 from ._flow import FlowField as FlowField
 from ._flow import analytic_flow as analytic_flow
+from ._flow import apply_pose as apply_pose
 from ._flow import pixel_points as pixel_points
 from ._flow import pixel_rays as pixel_rays
 from ._flow import rigid_motion as rigid_motion

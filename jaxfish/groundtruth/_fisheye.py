@@ -17,7 +17,7 @@ from ..transforms import Pose
 from ._boxes2d import Boxes2D, boxes_from_instances, boxes_from_surfaces
 from ._boxes3d import Boxes3D
 from ._classes import carla_to_synwoodscape
-from ._flow import FAR_RANGE_M, FlowField, analytic_flow, pixel_points, pixel_rays, rigid_motion
+from ._flow import FAR_RANGE_M, FlowField, analytic_flow, apply_pose, pixel_points, pixel_rays, rigid_motion
 from ._instances import (
     BOX_MARGIN_M,
     FALLBACK_DISTANCE_M,
@@ -162,7 +162,7 @@ def _jit_rays(camera):
 
 def _world_points(camera, rays, images: FisheyeImages, cam_to_world: Pose):
     pts, ok = pixel_points(camera, images.range_m, dtype=jnp.float32, rays=rays)
-    return cam_to_world.apply(pts), ok & images.valid
+    return apply_pose(cam_to_world, pts), ok & images.valid
 
 
 @functools.partial(jax.jit, static_argnums=(8, 9))

