@@ -26,6 +26,11 @@ from .cameras import Equirectangular as Equirectangular
 from .cameras import Orthographic as Orthographic
 from .cameras import Pinhole as Pinhole
 from .cameras import WoodScapeFisheye as WoodScapeFisheye
+from .groundtruth import Boxes3D as Boxes3D
+from .groundtruth import analytic_flow as analytic_flow
+from .groundtruth import fisheye_ground_truth as fisheye_ground_truth
+from .groundtruth import flow_to_color as flow_to_color
+from .groundtruth import instance_segmentation as instance_segmentation
 from .io import load_calibration as load_calibration
 from .io import load_rig as load_rig
 from .io import save_calibration as save_calibration

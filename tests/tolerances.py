@@ -39,3 +39,12 @@ CONVERT_EXACT_PX = 1e-7  # conversions that have an exact solution (WoodScape k2
 REFIT_SIGMA_BOUND = 4.0  # recovered parameters within this many estimated standard deviations
 REFIT_RMS_NOISE_REL = 0.1  # fitted RMS within 10 % of the injected noise RMS
 REFIT_NOISELESS_PX = 1e-6  # noiseless synthetic correspondences are fitted exactly
+# Ground truth (jaxfish.groundtruth).
+FLOW_CLOSED_FORM_PX_F64 = 1e-9  # analytic flow vs closed forms (pinhole translation, top view), float64
+FLOW_ORACLE_EPE_PX = 1e-2  # analytic flow from the oracle's own range and actors vs its per-pixel motion (float32)
+FLOW_PIPELINE_EPE_MEDIAN_PX = 0.1  # cube faces -> fisheye -> flow vs the oracle motion, median end-point error
+FLOW_PIPELINE_EPE_P90_PX = 0.5  # ... 90th percentile (depth edges resampled from another surface dominate the tail)
+FLOW_WARP_RGB_MEAN = 0.03  # mean |I_t(p + flow) - I_{t-1}(p)| on valid pixels, RGB in [0, 1] (bilinear texture sampling)
+FLOW_COLOR_JPEG = 6.0  # flow colour coding vs flow_vis' JPEG reference: mean absolute difference (uint8 levels)
+INSTANCE_ORACLE_AGREEMENT = 0.98  # fraction of the oracle's actor pixels given the same actor id
+KITTI_FLOW_PX = 1.0 / 128  # KITTI PNG quantisation (1/64 px steps)
