@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jaxfish as jf
 from jaxfish.refit import Correspondences, rotation_from_vector
+from jaxfish.refit._fit import jit_project
 
 #: 5 views x 20 x 20 corners: N = 2000 correspondences (weight 0 where a corner is off the image).
 N_VIEWS = 5
@@ -41,7 +41,8 @@ def scene(noise_px: float = 0.0, outlier_fraction: float = 0.0, seed: int = 0, c
     pts = np.tile(board, (N_VIEWS, 1))
     view = np.repeat(np.arange(N_VIEWS), len(board))
     pc = jnp.einsum("nij,nj->ni", poses.rotation_matrix[view], jnp.asarray(pts)) + poses.translation[view]
-    uv, valid = jax.jit(lambda c, p: (c.project(p)[0], c.project(p)[1] & c.contains(c.project(p)[0])))(cam, pc)
+    uv, valid = jit_project(cam, pc)  # the compiled projection refit itself uses
+    valid = valid & cam.contains(uv)
     clean = np.asarray(uv)
     rng = np.random.default_rng(seed)
     pixels = clean + rng.normal(size=clean.shape) * noise_px
