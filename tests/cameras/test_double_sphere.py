@@ -24,8 +24,8 @@ def _rays(theta_max: float, n: int = N, seed: int = 0) -> np.ndarray:
 
 
 def _wide_grid() -> jnp.ndarray:
-    """4N pixels on a 64 x 32 lattice reaching far beyond the 1280 x 966 image."""
-    u, v = np.meshgrid(np.linspace(-900.0, 2200.0, 64), np.linspace(-900.0, 1900.0, 32))
+    """N pixels on a 32 x 16 lattice reaching far beyond the 1280 x 966 image."""
+    u, v = np.meshgrid(np.linspace(-900.0, 2200.0, 32), np.linspace(-900.0, 1900.0, N // 32))
     return jnp.asarray(np.stack([u, v], -1).reshape(-1, 2))
 
 
