@@ -22,9 +22,13 @@ from .calibration import default_rig as default_rig
 from .calibration import resize_fisheye as resize_fisheye
 from .cameras import AbstractCamera as AbstractCamera
 from .cameras import Cylindrical as Cylindrical
+from .cameras import DoubleSphere as DoubleSphere
 from .cameras import Equirectangular as Equirectangular
+from .cameras import ExtendedUnifiedCamera as ExtendedUnifiedCamera
+from .cameras import KannalaBrandt as KannalaBrandt
 from .cameras import Orthographic as Orthographic
 from .cameras import Pinhole as Pinhole
+from .cameras import UnifiedCamera as UnifiedCamera
 from .cameras import WoodScapeFisheye as WoodScapeFisheye
 from .groundtruth import Boxes3D as Boxes3D
 from .groundtruth import analytic_flow as analytic_flow
