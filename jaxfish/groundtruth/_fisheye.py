@@ -101,10 +101,10 @@ def camera_to_world(vehicle_to_world: Pose, camera_to_vehicle: Pose) -> Pose:
 
 
 def _labels(camera, rays, images: FisheyeImages, cam_to_world: Pose, boxes: Boxes3D, carla_version, margin_m, fallback_m, k,
-            capacity):
+            capacity, cand):
     world, ok = _world_points(camera, rays, images, cam_to_world)
     base = jnp.where(ok, carla_to_synwoodscape(images.tag, carla_version=carla_version), -1)
-    inst = _assign(world, base, boxes, margin_m, fallback_m, TILE_SIZE, k, capacity)
+    inst = _assign(world, base, boxes, margin_m, fallback_m, TILE_SIZE, k, capacity, cand)
     sem = carla_to_synwoodscape(images.tag, carla_version=carla_version, box_class=inst.class_id)
     return inst, sem
 
@@ -141,13 +141,13 @@ def fisheye_ground_truth(
     c2w = camera_to_world(vehicle_to_world, camera_to_vehicle)
     rays = _jit_rays(camera) if rays is None else (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
     reach = max(margin_m, fallback_m)
-    k_host, n_host = _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach)
+    k_host, n_host, cands = _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach)
     if max_candidates is None:
         max_candidates = max(int(k_host), 1)
     capacity = tile_capacity(int(n_host))
-    return _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, float(motion_threshold_m),
-                     bool(backward_flow), float(margin_m), float(fallback_m), int(max_candidates), capacity,
-                     int(surface_samples))
+    return _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, carla_version,
+                     float(motion_threshold_m), bool(backward_flow), float(margin_m), float(fallback_m),
+                     int(max_candidates), capacity, int(surface_samples))
 
 
 @jax.jit
@@ -167,21 +167,22 @@ def _world_points(camera, rays, images: FisheyeImages, cam_to_world: Pose):
 
 @functools.partial(jax.jit, static_argnums=(8, 9))
 def _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach):
-    ks, ns = [], []
+    ks, ns, cs = [], [], []
     for im, c2w_, bx in ((img_p, c2w_p, boxes_prev), (img, c2w, boxes)):
         world, ok = _world_points(camera, rays, im, c2w_)
         base = jnp.where(ok, carla_to_synwoodscape(im.tag, carla_version=carla_version), -1)
-        k, n = _plan(world, base, bx, TILE_SIZE, reach)
+        k, n, c = _plan(world, base, bx, TILE_SIZE, reach)
         ks.append(k)
         ns.append(n)
-    return jnp.max(jnp.stack(ks)), jnp.max(jnp.stack(ns))
+        cs.append(c)
+    return jnp.max(jnp.stack(ks)), jnp.max(jnp.stack(ns)), tuple(cs)
 
 
-@functools.partial(jax.jit, static_argnums=tuple(range(8, 16)))
-def _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, motion_threshold_m, backward_flow,
-              margin_m, fallback_m, k, capacity, surface_samples):
-    inst_p, sem_p = _labels(camera, rays, img_p, c2w_p, boxes_prev, carla_version, margin_m, fallback_m, k, capacity)
-    inst, sem = _labels(camera, rays, img, c2w, boxes, carla_version, margin_m, fallback_m, k, capacity)
+@functools.partial(jax.jit, static_argnums=tuple(range(9, 17)))
+def _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, carla_version, motion_threshold_m,
+              backward_flow, margin_m, fallback_m, k, capacity, surface_samples):
+    inst_p, sem_p = _labels(camera, rays, img_p, c2w_p, boxes_prev, carla_version, margin_m, fallback_m, k, capacity, cands[0])
+    inst, sem = _labels(camera, rays, img, c2w, boxes, carla_version, margin_m, fallback_m, k, capacity, cands[1])
     disp = box_displacements(boxes_prev, boxes)
     motion = motion_segmentation(inst.box_index, disp, boxes.class_id, threshold_m=motion_threshold_m)
     fwd_motion = rigid_motion(boxes_prev.box_to_world, boxes.box_to_world)

@@ -95,10 +95,11 @@ _jit_candidates = jax.jit(_candidates, static_argnums=(3, 4))
 
 
 def _plan(points_world, pixel_class, boxes: Boxes3D, tile: int, reach: float):
-    """``(max candidates per tile, number of tiles holding instance pixels)``: the static sizes."""
+    """``(max candidates per tile, number of tiles holding instance pixels, the (T, B) candidate
+    mask)``: the static sizes, and the culling result to reuse."""
     cand = _candidates(points_world, pixel_class, boxes, tile, reach)
     busy = jnp.any(_tiles(_pixel_groups(pixel_class), tile, 0) > 0, axis=1)
-    return jnp.max(jnp.sum(cand, axis=-1)), jnp.sum(busy)
+    return jnp.max(jnp.sum(cand, axis=-1)), jnp.sum(busy), cand
 
 
 _jit_plan = jax.jit(_plan, static_argnums=(3, 4))
@@ -153,14 +154,15 @@ def instance_segmentation(
         raise ValueError(f"instance_segmentation: points {pts.shape} and classes {cls.shape} must be (H, W, 3) and (H, W)")
     if valid is not None:
         cls = jnp.where(jnp.asarray(valid, bool), cls, -1)
+    cand = None
     if max_candidates is None or capacity is None:
         if isinstance(pts, jax.core.Tracer):
             raise ValueError("instance_segmentation: pass static max_candidates and capacity inside jax.jit")
-        k_host, n_host = _jit_plan(pts, cls, boxes, int(tile), float(max(margin_m, fallback_m)))
+        k_host, n_host, cand = _jit_plan(pts, cls, boxes, int(tile), float(max(margin_m, fallback_m)))
         max_candidates = int(k_host) if max_candidates is None else max_candidates
         capacity = tile_capacity(int(n_host)) if capacity is None else capacity
     k = int(min(max(max_candidates, 1), max(boxes.num_boxes, 1)))
-    return _jit_assign(pts, cls, boxes, float(margin_m), float(fallback_m), int(tile), k, int(capacity))
+    return _jit_assign(pts, cls, boxes, float(margin_m), float(fallback_m), int(tile), k, int(capacity), cand)
 
 
 def _untile(x: Array, h: int, w: int, tile: int) -> Array:
@@ -170,14 +172,16 @@ def _untile(x: Array, h: int, w: int, tile: int) -> Array:
     return x[:h, :w]
 
 
-def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: int, k: int, capacity: int = 0) -> InstanceMap:
+def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: int, k: int, capacity: int = 0,
+            cand: Array | None = None) -> InstanceMap:
     h, w = cls.shape
     dtype = pts.dtype
     grp_img = _pixel_groups(cls)
     if boxes.num_boxes == 0:
         none = jnp.full((h, w), -1, jnp.int32)
         return InstanceMap(none, jnp.zeros((h, w), jnp.int32), none, grp_img > 0, jnp.zeros((h, w), bool))
-    cand = _candidates(pts, cls, boxes, tile, max(margin_m, fallback_m))  # (T, B)
+    if cand is None:
+        cand = _candidates(pts, cls, boxes, tile, max(margin_m, fallback_m))  # (T, B)
     _, top = jax.lax.top_k(cand.astype(jnp.int32), k)  # (T, K) candidates first
     top_ok = jnp.take_along_axis(cand, top, axis=1)
     tp = _tiles(pts, tile, 0.0)  # (T, P, 3)
