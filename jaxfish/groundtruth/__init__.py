@@ -36,6 +36,7 @@ from ._fisheye import camera_to_world as camera_to_world
 from ._fisheye import fisheye_ground_truth as fisheye_ground_truth
 from ._fisheye import fisheye_images as fisheye_images
 from ._fisheye import range_to_z_depth as range_to_z_depth
+from ._fisheye import view_ground_truth as view_ground_truth
 from ._flow import FAR_RANGE_M as FAR_RANGE_M
 from ._flow import OCCLUSION_REL_TOL as OCCLUSION_REL_TOL
 from ._flow import FlowField as FlowField

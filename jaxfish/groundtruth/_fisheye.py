@@ -137,9 +137,15 @@ def fisheye_ground_truth(
     t-1 (each point moves with its box) and the range map at t for occlusions. ``rays``: the
     camera's `pixel_rays` (a per-calibration constant; computed here when omitted)."""
     img_p, img = _jit_images_pair(lut, *(jnp.asarray(getattr(f, k)) for f in (faces_prev, faces) for k in ("rgb", "depth_m", "semantic")))
+    rays = _jit_rays(camera) if rays is None else (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
+    return _finish(camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world,
+                   carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples)
+
+
+def _finish(camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world,
+            carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples):
     c2w_p = camera_to_world(vehicle_to_world_prev, camera_to_vehicle)
     c2w = camera_to_world(vehicle_to_world, camera_to_vehicle)
-    rays = _jit_rays(camera) if rays is None else (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
     reach = max(margin_m, fallback_m)
     k_host, n_host, cands = _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach)
     if max_candidates is None:
@@ -148,6 +154,48 @@ def fisheye_ground_truth(
     return _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, carla_version,
                      float(motion_threshold_m), bool(backward_flow), float(margin_m), float(fallback_m),
                      int(max_candidates), capacity, int(surface_samples))
+
+
+def view_ground_truth(
+    camera: AbstractCamera,
+    camera_to_vehicle: Pose,
+    view_prev: Any,
+    view: Any,
+    boxes_prev: Boxes3D,
+    boxes: Boxes3D,
+    vehicle_to_world_prev: Pose,
+    vehicle_to_world: Pose,
+    *,
+    carla_version: str = "0.9.10",
+    motion_threshold_m: float = MOTION_THRESHOLD_M,
+    backward_flow: bool = False,
+    margin_m: float = BOX_MARGIN_M,
+    fallback_m: float = FALLBACK_DISTANCE_M,
+    max_candidates: int | None = None,
+    surface_samples: int = 12,
+    rays: tuple[Float[ArrayLike, "H W 3"], Bool[ArrayLike, "H W"]] | None = None,
+) -> CameraGroundTruth:
+    """The same ground truth as `fisheye_ground_truth` for a camera captured directly (no cube
+    faces): the BEV top view (`Orthographic`) or the front perspective camera (`Pinhole`).
+    ``view_prev`` / ``view`` carry ``rgb (H, W, 3)``, ``depth_m (H, W)`` (CARLA planar depth along the
+    optical axis; for the orthographic view the distance from the image plane) and ``semantic``
+    (CARLA tags); planar depth becomes range along each ray (far stays 1000)."""
+    rays = _jit_rays(camera) if rays is None else (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
+    img_p = _jit_view_images(camera, rays, *(jnp.asarray(getattr(view_prev, k)) for k in ("rgb", "depth_m", "semantic")))
+    img = _jit_view_images(camera, rays, *(jnp.asarray(getattr(view, k)) for k in ("rgb", "depth_m", "semantic")))
+    return _finish(camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world,
+                   carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples)
+
+
+@jax.jit
+def _jit_view_images(camera, rays, rgb, depth_m, tag):
+    r, ok = rays
+    z = depth_m.astype(jnp.float32)
+    rz = r[..., 2]
+    good = ok & (rz > 0)
+    rng = jnp.where(good, z / jnp.where(good, rz, 1.0), 0.0)
+    rng = jnp.where(z >= FAR_RANGE_M, FAR_RANGE_M, rng)
+    return FisheyeImages(rgb=rgb, range_m=rng.astype(jnp.float32), tag=tag.astype(jnp.int32), valid=good)
 
 
 @jax.jit
