@@ -23,7 +23,7 @@ def _random_events(rng, n, faces, size, t0=1_000_000_000):
 
 def test_events_land_where_the_fisheye_ray_meets_the_face_pixel(sample, event_map, jit_unproject):
     rng = np.random.default_rng(0)
-    fi, x, y, t, p = _random_events(rng, 4000, len(sample.lut.source_shape) and sample.lut.num_faces, sample.face_size)
+    fi, x, y, t, p = _random_events(rng, 4000, sample.lut.num_faces, sample.face_size)
     out = gt.compact_events(jax.jit(gt.map_events)(event_map, fi, x, y, t, p))
     assert out["x"].size > 100
     # Each output pixel's centre ray, projected into the rig, falls in the event's face pixel.

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from jaxfish import groundtruth as gt
 from jaxfish.io import (
     CaptureReader,
     capture_ground_truth,
@@ -54,7 +55,7 @@ def test_capture_adapter_matches_the_in_memory_ground_truth(sample, capture):
     assert np.median(np.linalg.norm(np.asarray(t.flow.flow) - np.asarray(ref.flow.flow), axis=-1)[ok]) < 1e-2
     ev = res["events"]
     assert np.all(np.diff(ev["t"]) >= 0)
-    fan = np.asarray(__import__("jaxfish").groundtruth.event_map_from_lut(sample.lut).fanout)
+    fan = np.asarray(gt.event_map_from_lut(sample.lut).fanout)
     s = sample.face_size
     want = sum(int(fan[(i * s + d["y"].astype(int)) * s + d["x"].astype(int)].sum()) for i, d in enumerate(dvs.values()))
     assert ev.shape[0] == want
