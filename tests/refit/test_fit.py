@@ -80,12 +80,11 @@ def eqx_replace_aspect(cam, aspect):
 
 def test_robust_loss_resists_outliers():
     corr, truth, _, _ = scene(noise_px=0.2, outlier_fraction=0.05, seed=1)
-    plain = refit(initial_camera(), corr)
     robust = refit(initial_camera(), corr, loss="huber", loss_scale_px=1.0)
-    err = lambda r: np.abs(np.asarray(intrinsics_vector(r.camera)) - np.asarray(intrinsics_vector(truth)))  # noqa: E731
     assert bool(robust.converged)
-    assert err(robust)[0] < 0.3 * err(plain)[0] + 1e-3
-    assert np.abs(np.asarray(robust.camera.principal_point) - np.asarray(truth.principal_point)).max() < 0.3
+    err = np.abs(np.asarray(intrinsics_vector(robust.camera)) - np.asarray(intrinsics_vector(truth)))
+    # Measured with loss="linear" on the same data: k1 off by 2.5 px, cx_offset by 2.2 px.
+    assert err[0] < 0.5 and err[4] < 0.1 and err[5] < 0.1, err
 
 
 def test_objective_gradients_match_finite_differences():
