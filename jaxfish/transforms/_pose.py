@@ -6,12 +6,22 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._numerics import float_dtype, resolve_dtype
+from .._numerics import float_dtype, resolve_dtype, stack_last
 
 
 def _check_trailing(x: Array, shape: tuple[int, ...], what: str) -> None:
     if x.shape[x.ndim - len(shape) :] != shape:
         raise ValueError(f"{what} must have shape (..., {', '.join(map(str, shape))}), got {x.shape}")
+
+
+def _matvec(r: Float[Array, "*b 3 3"], v: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
+    """``r @ v`` over broadcast batch axes as explicit multiply-adds.
+
+    On XLA-CPU an einsum/dot_general with a tiny contraction over image-sized batches runs ~40x
+    slower than these fused elementwise products (40 ms vs < 1 ms for 1.2M points).
+    """
+    rows = [r[..., i, 0] * v[..., 0] + r[..., i, 1] * v[..., 1] + r[..., i, 2] * v[..., 2] for i in range(3)]
+    return stack_last(rows)
 
 
 def quaternion_xyzw_to_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
@@ -141,17 +151,17 @@ class Pose(eqx.Module):
         v = jnp.asarray(vectors)
         _check_trailing(v, (3,), "vectors")
         dtype = float_dtype(v, self.rotation_matrix)
-        return jnp.einsum("...ij,...j->...i", self.rotation_matrix.astype(dtype), v.astype(dtype))
+        return _matvec(self.rotation_matrix.astype(dtype), v.astype(dtype))
 
     def inverse(self) -> Pose:
         """The inverse transform ``p -> R^T (p - t)``."""
         rt = jnp.swapaxes(self.rotation_matrix, -1, -2)
-        return Pose(rt, -jnp.einsum("...ij,...j->...i", rt, self.translation))
+        return Pose(rt, -_matvec(rt, self.translation))
 
     def compose(self, other: Pose) -> Pose:
         """``self ∘ other``: first `other`, then `self`."""
         r = jnp.einsum("...ij,...jk->...ik", self.rotation_matrix, other.rotation_matrix)
-        t = jnp.einsum("...ij,...j->...i", self.rotation_matrix, other.translation) + self.translation
+        t = _matvec(self.rotation_matrix, other.translation) + self.translation
         return Pose(r, t)
 
     def __matmul__(self, other: Pose) -> Pose:
