@@ -39,6 +39,18 @@ from .io import load_calibration as load_calibration
 from .io import load_rig as load_rig
 from .io import save_calibration as save_calibration
 from .io import save_rig as save_rig
+from .reprojection import CubeRig as CubeRig
+from .reprojection import Lut as Lut
+from .reprojection import build_lut as build_lut
+from .reprojection import cube_face_size as cube_face_size
+from .reprojection import resample_bilinear as resample_bilinear
+from .reprojection import resample_depth as resample_depth
+from .reprojection import resample_nearest as resample_nearest
+from .scene import Scene as Scene
+from .scene import StreetFrame as StreetFrame
+from .scene import generate_street as generate_street
+from .scene import oracle_errors as oracle_errors
+from .scene import render_fisheye as render_fisheye
 from .transforms import Pose as Pose
 
 __version__ = "0.1.0"
