@@ -13,40 +13,13 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, float_dtype, resolve_dtype, safe_norm, stack_last, theta_over_sin
 from ._base import AbstractCamera
+from ._domain import first_increasing_limit
 
-#: Grid and bisection steps used to locate the first stationary point of theta_d(theta) on [0, pi].
-_GRID = 2048
-_BISECTIONS = 60
 #: When theta_d(theta) has a stationary point theta_s <= pi, the valid domain is
 #: [0, theta_s - margin] (same rule as `WoodScapeFisheye`).
 KB_THETA_MAX_MARGIN_RAD = 1e-3
 _MAX_NEWTON_STEPS = 32
 _GUESS_STEPS = 3
-
-
-def first_increasing_limit(derivative, params, dtype, *, margin: float = KB_THETA_MAX_MARGIN_RAD) -> Float[Array, ""]:
-    """Largest theta in [0, pi] up to which ``derivative(params, theta) > 0`` holds from 0 on.
-
-    Returns pi when the derivative stays positive on the whole grid, else the first sign change
-    (grid + bisection, exact to float precision) minus ``margin``; 0 if the derivative is not
-    positive at 0. Not differentiated: a domain boundary is a mask, not a value.
-    """
-    params = jax.lax.stop_gradient(params)
-    grid = jnp.linspace(0.0, math.pi, _GRID + 1, dtype=dtype)
-    bad = derivative(params, grid) <= 0
-    first = jnp.argmax(bad)
-    lo = grid[jnp.maximum(first - 1, 0)]
-    hi = grid[first]
-
-    def bisect(_, bracket):
-        a, b = bracket
-        m = 0.5 * (a + b)
-        m_bad = derivative(params, m) <= 0
-        return jnp.where(m_bad, a, m), jnp.where(m_bad, m, b)
-
-    lo, hi = jax.lax.fori_loop(0, _BISECTIONS, bisect, (lo, hi))
-    stationary = jnp.maximum(lo - margin, 0.0)
-    return jnp.where(jnp.any(bad), stationary, jnp.asarray(math.pi, dtype))
 
 
 def theta_d_of_theta(k: Float[Array, "4"], theta: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
@@ -64,7 +37,7 @@ def dtheta_d_dtheta(k: Float[Array, "4"], theta: Float[Array, "*batch"]) -> Floa
 @jax.jit
 def _kb_theta_max(k: Float[Array, "4"]) -> Float[Array, ""]:
     # Jitted once per dtype: eager calls would otherwise dispatch the bisection loop op by op.
-    return first_increasing_limit(dtheta_d_dtheta, k, k.dtype)
+    return first_increasing_limit(dtheta_d_dtheta, k, k.dtype, margin=KB_THETA_MAX_MARGIN_RAD)
 
 
 def _residual(theta, args):

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -14,11 +12,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, float_dtype, resolve_dtype, safe_norm, stack_last, theta_over_sin
 from ._base import AbstractCamera
+from ._domain import first_increasing_limit
 
-#: Grid used to locate the first stationary point of rho(theta) on [0, pi].
-_THETA_MAX_GRID = 2048
-#: Bisection steps refining that stationary point (2**-60 of a grid cell: exact in float64).
-_THETA_MAX_BISECTIONS = 60
 #: When rho(theta) has a stationary point theta_s <= pi, the valid domain is [0, theta_s - margin]:
 #: at theta_s itself the inverse has infinite slope and is not a usable ray.
 THETA_MAX_MARGIN_RAD = 1e-3
@@ -47,33 +42,14 @@ def drho_dtheta(k: Float[Array, 4], theta: Float[Array, "*batch"]) -> Float[Arra
     return k[0] + theta * (2 * k[1] + theta * (3 * k[2] + theta * (4 * k[3])))
 
 
-def theta_max_of(k: Float[Array, 4]) -> Float[Array, ""]:
+def theta_max_of(k: Float[Array, "4"]) -> Float[Array, ""]:
     """Upper end of the valid incidence-angle domain of a radial_poly lens (radians).
 
     ``pi`` when rho is strictly increasing on [0, pi]; otherwise the first stationary point of rho
     minus `THETA_MAX_MARGIN_RAD`; 0 when rho does not increase at 0 (k1 <= 0: no valid ray).
     Not differentiated (the domain boundary is a mask, not a value).
     """
-    k = jax.lax.stop_gradient(k)
-    dtype = k.dtype
-    pi = jnp.asarray(math.pi, dtype)
-    grid = jnp.linspace(0.0, math.pi, _THETA_MAX_GRID + 1, dtype=dtype)
-    d = drho_dtheta(k, grid)
-    bad = d <= 0
-    any_bad = jnp.any(bad)
-    first = jnp.argmax(bad)
-    lo = grid[jnp.maximum(first - 1, 0)]
-    hi = grid[first]
-
-    def bisect(_, bracket):
-        a, b = bracket
-        m = 0.5 * (a + b)
-        m_bad = drho_dtheta(k, m) <= 0
-        return jnp.where(m_bad, a, m), jnp.where(m_bad, m, b)
-
-    lo, hi = jax.lax.fori_loop(0, _THETA_MAX_BISECTIONS, bisect, (lo, hi))
-    stationary = jnp.maximum(lo - THETA_MAX_MARGIN_RAD, 0.0)
-    return jnp.where(any_bad, stationary, pi)
+    return first_increasing_limit(drho_dtheta, k, k.dtype, margin=THETA_MAX_MARGIN_RAD)
 
 
 def _theta_residual(theta, args):

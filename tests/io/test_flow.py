@@ -32,7 +32,7 @@ def test_flo_layout_is_u_v_interleaved_row_major(tmp_path):
 
 
 def test_flo_rejects_malformed_files(tmp_path):
-    (tmp_path / "bad.flo").write_bytes(b"XXXX" + b"\0" * 8)
+    (tmp_path / "bad.flo").write_bytes(b"BADT" + b"\0" * 8)
     with pytest.raises(ImageError, match="bad.flo"):
         read_flo(tmp_path / "bad.flo")
     write_flo(tmp_path / "c.flo", _flow())
