@@ -7,7 +7,7 @@ from typing import Literal
 import equinox as eqx
 
 from .._numerics import resolve_dtype
-from ..cameras import WoodScapeFisheye
+from ..cameras import AbstractCamera, WoodScapeFisheye
 from ..transforms import Pose
 
 #: The four surround-view cameras of WoodScape/SynWoodScape: front, mirror-left, mirror-right, rear.
@@ -30,7 +30,8 @@ class Calibration(eqx.Module):
     """One calibrated fisheye camera of a rig.
 
     - `name`: camera name (``"FV"``, ``"MVL"``, ``"MVR"``, ``"RV"`` for the standard rig);
-    - `camera`: the `WoodScapeFisheye` intrinsics;
+    - `camera`: the intrinsics, a `WoodScapeFisheye` for WoodScape files (other lens models come
+      from `jaxfish.refit`'s calibration files; `resize` / `crop` need a `WoodScapeFisheye`);
     - `camera_to_vehicle`: `Pose` mapping OpenCV camera coordinates to the ISO 8855 vehicle frame
       (x forward, y left, z up, metres): ``p_vehicle = R p_cam + t``;
     - `flavor`: ``"woodscape"`` (vehicle origin below the rear-axle centre) or ``"synwoodscape"``
@@ -38,7 +39,7 @@ class Calibration(eqx.Module):
     """
 
     name: str = eqx.field(static=True)
-    camera: WoodScapeFisheye
+    camera: AbstractCamera
     camera_to_vehicle: Pose
     flavor: str = eqx.field(static=True, default="woodscape")
 
@@ -80,6 +81,8 @@ def resize_fisheye(camera: WoodScapeFisheye, width: int, height: int) -> WoodSca
     ``cy_offset' = sy cy_offset``. Non-uniform resizes are exact too (only ``u`` is scaled by ``k``,
     ``v`` by ``k * aspect``), unlike OmniDet's scaling.
     """
+    if not isinstance(camera, WoodScapeFisheye):
+        raise TypeError(f"resize_fisheye: needs a WoodScapeFisheye, got {type(camera).__name__}")
     width, height = int(width), int(height)
     if width <= 0 or height <= 0:
         raise ValueError(f"resize_fisheye: size must be positive, got {width}x{height}")
@@ -102,6 +105,8 @@ def crop_fisheye(camera: WoodScapeFisheye, x0: int, y0: int, width: int, height:
     ``u' = u - x0``: the principal point moves, the polynomial does not. The crop may extend
     beyond the original image (padding).
     """
+    if not isinstance(camera, WoodScapeFisheye):
+        raise TypeError(f"crop_fisheye: needs a WoodScapeFisheye, got {type(camera).__name__}")
     width, height = int(width), int(height)
     if width <= 0 or height <= 0:
         raise ValueError(f"crop_fisheye: size must be positive, got {width}x{height}")

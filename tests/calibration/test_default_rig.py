@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import jaxfish as jf
 
@@ -42,3 +43,9 @@ def test_default_rig_resized():
         uv_small, _ = small[name].camera.project(p)
         s = np.array([320 / 1280, 240 / 966])
         np.testing.assert_allclose(np.asarray(uv_small), (np.asarray(uv_full) + 0.5) * s - 0.5, atol=1e-9)
+
+
+def test_resize_needs_a_woodscape_camera():
+    calib = jf.Calibration("X", jf.Pinhole.from_fov(64, 48), jf.Pose.identity())
+    with pytest.raises(TypeError, match="WoodScapeFisheye"):
+        calib.resize(32, 24)
