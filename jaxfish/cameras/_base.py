@@ -96,3 +96,21 @@ def _split_last(x: Array, n: int) -> tuple[Array, ...]:
     if x.shape[-1:] != (n,):
         raise ValueError(f"expected a trailing axis of size {n}, got shape {x.shape}")
     return tuple(x[..., i] for i in range(n))
+
+
+def as_coordinates(x: ArrayLike, n: int, where: str) -> tuple[Array, jnp.dtype]:
+    """``x`` as an array with a trailing axis of size ``n``, cast to its computation dtype
+    (`float_dtype`); a wrong shape raises ``ValueError`` naming ``where`` (e.g. ``"Pinhole.project: points"``)."""
+    a = jnp.asarray(x)
+    if a.shape[-1:] != (n,):
+        raise ValueError(f"{where} must have shape (..., {n}), got {a.shape}")
+    dtype = float_dtype(a)
+    return a.astype(dtype), dtype
+
+
+def check_image_size(width: int, height: int, where: str) -> tuple[int, int]:
+    """``(int(width), int(height))``, raising ``ValueError`` naming ``where`` unless both are positive."""
+    width, height = int(width), int(height)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"{where}: image size must be positive, got {width}x{height}")
+    return width, height

@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import float_dtype, resolve_dtype, safe_norm
-from ._base import AbstractCamera
+from .._numerics import resolve_dtype, safe_norm
+from ._base import AbstractCamera, as_coordinates, check_image_size
 from ._unified import _safe_sqrt, unified_w
 
 
@@ -57,9 +57,7 @@ class DoubleSphere(AbstractCamera):
         self.cy = jnp.asarray(cy, dtype=dtype)
         self.xi = jnp.asarray(xi, dtype=dtype)
         self.alpha = jnp.asarray(alpha, dtype=dtype)
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"DoubleSphere: image size must be positive, got {width}x{height}")
+        width, height = check_image_size(width, height, "DoubleSphere")
         self.width = width
         self.height = height
 
@@ -79,11 +77,7 @@ class DoubleSphere(AbstractCamera):
         self, points: Float[ArrayLike, "*batch 3"]
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
         """Pixels ``(..., 2)`` of camera-frame points ``(..., 3)`` and their validity."""
-        p = jnp.asarray(points)
-        if p.shape[-1:] != (3,):
-            raise ValueError(f"DoubleSphere.project: points must have shape (..., 3), got {p.shape}")
-        dtype = float_dtype(p)
-        p = p.astype(dtype)
+        p, dtype = as_coordinates(points, 3, "DoubleSphere.project: points")
         xi = self.xi.astype(dtype)
         alpha = self.alpha.astype(dtype)
         x, y, z = p[..., 0], p[..., 1], p[..., 2]
@@ -102,11 +96,7 @@ class DoubleSphere(AbstractCamera):
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Unit rays ``(..., 3)`` of pixels ``(..., 2)`` and their validity."""
-        uv = jnp.asarray(uv)
-        if uv.shape[-1:] != (2,):
-            raise ValueError(f"DoubleSphere.unproject: uv must have shape (..., 2), got {uv.shape}")
-        dtype = float_dtype(uv)
-        uv = uv.astype(dtype)
+        uv, dtype = as_coordinates(uv, 2, "DoubleSphere.unproject: uv")
         xi = self.xi.astype(dtype)
         alpha = self.alpha.astype(dtype)
         mx = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)

@@ -8,8 +8,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import float_dtype, resolve_dtype, safe_norm
-from ._base import AbstractCamera
+from .._numerics import resolve_dtype, safe_norm
+from ._base import AbstractCamera, as_coordinates, check_image_size
 
 
 def _longitude(p: Array) -> tuple[Array, Array]:
@@ -47,9 +47,7 @@ class Equirectangular(AbstractCamera):
         dtype=None,
     ):
         dtype = resolve_dtype(dtype, )
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"Equirectangular: image size must be positive, got {width}x{height}")
+        width, height = check_image_size(width, height, "Equirectangular")
         if not (-math.pi <= lon_range[0] < lon_range[1] <= math.pi):
             raise ValueError(f"Equirectangular: lon_range must be increasing within [-pi, pi], got {lon_range}")
         if not (-math.pi / 2 <= lat_range[0] < lat_range[1] <= math.pi / 2):
@@ -65,11 +63,7 @@ class Equirectangular(AbstractCamera):
         self, points: Float[ArrayLike, "*batch 3"]
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
         """Pixels of camera-frame points; valid inside the longitude/latitude ranges."""
-        p = jnp.asarray(points)
-        if p.shape[-1:] != (3,):
-            raise ValueError(f"Equirectangular.project: points must have shape (..., 3), got {p.shape}")
-        dtype = float_dtype(p)
-        p = p.astype(dtype)
+        p, dtype = as_coordinates(points, 3, "Equirectangular.project: points")
         lon, horiz = _longitude(p)
         r = safe_norm(p)
         ok = r > 0
@@ -85,11 +79,7 @@ class Equirectangular(AbstractCamera):
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Unit rays of pixels; valid inside the image."""
-        uv = jnp.asarray(uv)
-        if uv.shape[-1:] != (2,):
-            raise ValueError(f"Equirectangular.unproject: uv must have shape (..., 2), got {uv.shape}")
-        dtype = float_dtype(uv)
-        uv = uv.astype(dtype)
+        uv, dtype = as_coordinates(uv, 2, "Equirectangular.unproject: uv")
         lon0, lon1 = self.lon_min.astype(dtype), self.lon_max.astype(dtype)
         lat0, lat1 = self.lat_min.astype(dtype), self.lat_max.astype(dtype)
         lon = lon0 + (uv[..., 0] + 0.5) / self.width * (lon1 - lon0)
@@ -125,9 +115,7 @@ class Cylindrical(AbstractCamera):
         dtype=None,
     ):
         dtype = resolve_dtype(dtype, )
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"Cylindrical: image size must be positive, got {width}x{height}")
+        width, height = check_image_size(width, height, "Cylindrical")
         if not (-math.pi <= lon_range[0] < lon_range[1] <= math.pi):
             raise ValueError(f"Cylindrical: lon_range must be increasing within [-pi, pi], got {lon_range}")
         if f is None:  # square pixels at the horizon
@@ -143,11 +131,7 @@ class Cylindrical(AbstractCamera):
         self, points: Float[ArrayLike, "*batch 3"]
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
         """Pixels of camera-frame points; valid off the vertical axis and inside the longitude range."""
-        p = jnp.asarray(points)
-        if p.shape[-1:] != (3,):
-            raise ValueError(f"Cylindrical.project: points must have shape (..., 3), got {p.shape}")
-        dtype = float_dtype(p)
-        p = p.astype(dtype)
+        p, dtype = as_coordinates(points, 3, "Cylindrical.project: points")
         lon, horiz = _longitude(p)
         ok = horiz > 0
         lon0, lon1 = self.lon_min.astype(dtype), self.lon_max.astype(dtype)
@@ -160,11 +144,7 @@ class Cylindrical(AbstractCamera):
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Unit rays of pixels; valid inside the longitude range."""
-        uv = jnp.asarray(uv)
-        if uv.shape[-1:] != (2,):
-            raise ValueError(f"Cylindrical.unproject: uv must have shape (..., 2), got {uv.shape}")
-        dtype = float_dtype(uv)
-        uv = uv.astype(dtype)
+        uv, dtype = as_coordinates(uv, 2, "Cylindrical.unproject: uv")
         lon0, lon1 = self.lon_min.astype(dtype), self.lon_max.astype(dtype)
         lon = lon0 + (uv[..., 0] + 0.5) / self.width * (lon1 - lon0)
         y = (uv[..., 1] - self.cy.astype(dtype)) / self.f.astype(dtype)

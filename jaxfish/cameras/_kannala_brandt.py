@@ -12,7 +12,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, float_dtype, resolve_dtype, safe_norm, stack_last, theta_over_sin
-from ._base import AbstractCamera
+from ._base import AbstractCamera, as_coordinates, check_image_size
 from ._domain import first_increasing_limit
 
 #: When theta_d(theta) has a stationary point theta_s <= pi, the valid domain is
@@ -116,9 +116,7 @@ class KannalaBrandt(AbstractCamera):
         if k.shape[-1:] != (4,):
             raise ValueError(f"KannalaBrandt: k must have shape (..., 4), got {k.shape}")
         self.k = k
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"KannalaBrandt: image size must be positive, got {width}x{height}")
+        width, height = check_image_size(width, height, "KannalaBrandt")
         self.width = width
         self.height = height
 
@@ -149,11 +147,7 @@ class KannalaBrandt(AbstractCamera):
         self, points: Float[ArrayLike, "*batch 3"]
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
         """Pixels ``(..., 2)`` of camera-frame points ``(..., 3)`` and their validity."""
-        p = jnp.asarray(points)
-        if p.shape[-1:] != (3,):
-            raise ValueError(f"KannalaBrandt.project: points must have shape (..., 3), got {p.shape}")
-        dtype = float_dtype(p)
-        p = p.astype(dtype)
+        p, dtype = as_coordinates(points, 3, "KannalaBrandt.project: points")
         k = self.k.astype(dtype)
         x, y, z = p[..., 0], p[..., 1], p[..., 2]
         chi = safe_norm(p[..., :2])
@@ -174,11 +168,7 @@ class KannalaBrandt(AbstractCamera):
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Unit rays ``(..., 3)`` of pixels ``(..., 2)``; invalid beyond ``theta_d(theta_max)``."""
-        uv = jnp.asarray(uv)
-        if uv.shape[-1:] != (2,):
-            raise ValueError(f"KannalaBrandt.unproject: uv must have shape (..., 2), got {uv.shape}")
-        dtype = float_dtype(uv)
-        uv = uv.astype(dtype)
+        uv, dtype = as_coordinates(uv, 2, "KannalaBrandt.unproject: uv")
         k = self.k.astype(dtype)
         mx = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
         my = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)

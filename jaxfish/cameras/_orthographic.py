@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import float_dtype, resolve_dtype
-from ._base import AbstractCamera
+from ._base import AbstractCamera, as_coordinates, check_image_size
 
 
 class Orthographic(AbstractCamera):
@@ -38,9 +38,7 @@ class Orthographic(AbstractCamera):
         dtype=None,
     ):
         dtype = resolve_dtype(dtype, metres_per_pixel)
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"Orthographic: image size must be positive, got {width}x{height}")
+        width, height = check_image_size(width, height, "Orthographic")
         self.metres_per_pixel = jnp.asarray(metres_per_pixel, dtype=dtype)
         self.cx = jnp.asarray((width - 1) / 2.0 if cx is None else cx, dtype=dtype)
         self.cy = jnp.asarray((height - 1) / 2.0 if cy is None else cy, dtype=dtype)
@@ -56,11 +54,7 @@ class Orthographic(AbstractCamera):
         self, points: Float[ArrayLike, "*batch 3"]
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
         """Pixels of camera-frame points; valid where ``Z > 0``."""
-        p = jnp.asarray(points)
-        if p.shape[-1:] != (3,):
-            raise ValueError(f"Orthographic.project: points must have shape (..., 3), got {p.shape}")
-        dtype = float_dtype(p)
-        p = p.astype(dtype)
+        p, dtype = as_coordinates(points, 3, "Orthographic.project: points")
         m = self.metres_per_pixel.astype(dtype)
         u = p[..., 0] / m + self.cx.astype(dtype)
         v = p[..., 1] / m + self.cy.astype(dtype)
@@ -70,10 +64,7 @@ class Orthographic(AbstractCamera):
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Ray directions: +z for every pixel (always valid); origins from `ray_origins`."""
-        uv = jnp.asarray(uv)
-        if uv.shape[-1:] != (2,):
-            raise ValueError(f"Orthographic.unproject: uv must have shape (..., 2), got {uv.shape}")
-        dtype = float_dtype(uv)
+        uv, dtype = as_coordinates(uv, 2, "Orthographic.unproject: uv")
         shape = uv.shape[:-1]
         ray = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], dtype), shape + (3,))
         return ray, jnp.ones(shape, dtype=bool)

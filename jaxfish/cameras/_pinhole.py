@@ -8,8 +8,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import float_dtype, resolve_dtype
-from ._base import AbstractCamera
+from .._numerics import resolve_dtype
+from ._base import AbstractCamera, as_coordinates, check_image_size
 
 
 class Pinhole(AbstractCamera):
@@ -35,9 +35,7 @@ class Pinhole(AbstractCamera):
         self.fy = jnp.asarray(fy, dtype=dtype)
         self.cx = jnp.asarray(cx, dtype=dtype)
         self.cy = jnp.asarray(cy, dtype=dtype)
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"Pinhole: image size must be positive, got {width}x{height}")
+        width, height = check_image_size(width, height, "Pinhole")
         self.width = width
         self.height = height
 
@@ -63,11 +61,7 @@ class Pinhole(AbstractCamera):
         self, points: Float[ArrayLike, "*batch 3"]
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
         """Pixels of camera-frame points; valid where ``Z > 0``."""
-        p = jnp.asarray(points)
-        if p.shape[-1:] != (3,):
-            raise ValueError(f"Pinhole.project: points must have shape (..., 3), got {p.shape}")
-        dtype = float_dtype(p)
-        p = p.astype(dtype)
+        p, dtype = as_coordinates(points, 3, "Pinhole.project: points")
         z = p[..., 2]
         valid = z > 0
         inv_z = 1.0 / jnp.where(valid, z, 1.0)
@@ -79,11 +73,7 @@ class Pinhole(AbstractCamera):
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Unit rays of pixels (always valid)."""
-        uv = jnp.asarray(uv)
-        if uv.shape[-1:] != (2,):
-            raise ValueError(f"Pinhole.unproject: uv must have shape (..., 2), got {uv.shape}")
-        dtype = float_dtype(uv)
-        uv = uv.astype(dtype)
+        uv, dtype = as_coordinates(uv, 2, "Pinhole.unproject: uv")
         x = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
         y = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)
         d = jnp.stack([x, y, jnp.ones_like(x)], axis=-1)

@@ -13,8 +13,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import float_dtype, resolve_dtype, safe_norm
-from ._base import AbstractCamera
+from .._numerics import resolve_dtype, safe_norm
+from ._base import AbstractCamera, as_coordinates, check_image_size
 
 
 def _safe_sqrt(x: Array) -> Array:
@@ -37,17 +37,9 @@ def _pixels_to_m(cam, uv: Array, dtype) -> tuple[Array, Array]:
     return mx, my
 
 
-def _check(x: Array, n: int, what: str) -> None:
-    if x.shape[-1:] != (n,):
-        raise ValueError(f"{what} must have shape (..., {n}), got {x.shape}")
-
-
 def eucm_project(cam, points, alpha, beta, name: str):
     """Shared EUCM projection (UCM is beta = 1)."""
-    p = jnp.asarray(points)
-    _check(p, 3, f"{name}.project: points")
-    dtype = float_dtype(p)
-    p = p.astype(dtype)
+    p, dtype = as_coordinates(points, 3, f"{name}.project: points")
     alpha = alpha.astype(dtype)
     beta = beta.astype(dtype)
     x, y, z = p[..., 0], p[..., 1], p[..., 2]
@@ -65,10 +57,7 @@ def eucm_project(cam, points, alpha, beta, name: str):
 
 def eucm_unproject(cam, uv, alpha, beta, name: str):
     """Shared EUCM unprojection (UCM is beta = 1); rays are normalised."""
-    uv = jnp.asarray(uv)
-    _check(uv, 2, f"{name}.unproject: uv")
-    dtype = float_dtype(uv)
-    uv = uv.astype(dtype)
+    uv, dtype = as_coordinates(uv, 2, f"{name}.unproject: uv")
     alpha = alpha.astype(dtype)
     beta = beta.astype(dtype)
     mx, my = _pixels_to_m(cam, uv, dtype)
@@ -121,9 +110,7 @@ class UnifiedCamera(AbstractCamera):
         self.cx = jnp.asarray(cx, dtype=dtype)
         self.cy = jnp.asarray(cy, dtype=dtype)
         self.alpha = jnp.asarray(alpha, dtype=dtype)
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"UnifiedCamera: image size must be positive, got {width}x{height}")
+        width, height = check_image_size(width, height, "UnifiedCamera")
         self.width = width
         self.height = height
 
@@ -202,9 +189,7 @@ class ExtendedUnifiedCamera(AbstractCamera):
         self.cy = jnp.asarray(cy, dtype=dtype)
         self.alpha = jnp.asarray(alpha, dtype=dtype)
         self.beta = jnp.asarray(beta, dtype=dtype)
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"ExtendedUnifiedCamera: image size must be positive, got {width}x{height}")
+        width, height = check_image_size(width, height, "ExtendedUnifiedCamera")
         self.width = width
         self.height = height
 

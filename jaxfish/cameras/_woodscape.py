@@ -11,7 +11,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, float_dtype, resolve_dtype, safe_norm, stack_last, theta_over_sin
-from ._base import AbstractCamera
+from ._base import AbstractCamera, as_coordinates, check_image_size
 from ._domain import first_increasing_limit
 
 #: When rho(theta) has a stationary point theta_s <= pi, the valid domain is [0, theta_s - margin]:
@@ -153,9 +153,7 @@ class WoodScapeFisheye(AbstractCamera):
         self.cx_offset = jnp.asarray(cx_offset, dtype=dtype)
         self.cy_offset = jnp.asarray(cy_offset, dtype=dtype)
         self.aspect_ratio = jnp.asarray(aspect_ratio, dtype=dtype)
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"WoodScapeFisheye: image size must be positive, got {width}x{height}")
+        width, height = check_image_size(width, height, "WoodScapeFisheye")
         self.width = width
         self.height = height
 
@@ -200,11 +198,7 @@ class WoodScapeFisheye(AbstractCamera):
         Invalid: the camera centre, points with theta > `theta_max`, and the ray exactly behind
         the optical axis (theta = pi, where the azimuth is undefined).
         """
-        p = jnp.asarray(points)
-        if p.shape[-1:] != (3,):
-            raise ValueError(f"WoodScapeFisheye.project: points must have shape (..., 3), got {p.shape}")
-        dtype = float_dtype(p)
-        p = p.astype(dtype)
+        p, dtype = as_coordinates(points, 3, "WoodScapeFisheye.project: points")
         k = self.k.astype(dtype)
         cx, cy = self._principal_point(dtype)
         a = self.aspect_ratio.astype(dtype)
@@ -232,11 +226,7 @@ class WoodScapeFisheye(AbstractCamera):
         Invalid: pixels beyond `rho_max` (outside the lens domain) and, never in practice, a
         Newton solve that did not converge. Invalid rays are finite placeholders.
         """
-        uv = jnp.asarray(uv)
-        if uv.shape[-1:] != (2,):
-            raise ValueError(f"WoodScapeFisheye.unproject: uv must have shape (..., 2), got {uv.shape}")
-        dtype = float_dtype(uv)
-        uv = uv.astype(dtype)
+        uv, dtype = as_coordinates(uv, 2, "WoodScapeFisheye.unproject: uv")
         k = self.k.astype(dtype)
         cx, cy = self._principal_point(dtype)
         a = self.aspect_ratio.astype(dtype)
