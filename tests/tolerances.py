@@ -48,3 +48,5 @@ FLOW_WARP_RGB_MEAN = 0.03  # mean |I_t(p + flow) - I_{t-1}(p)| on valid pixels, 
 FLOW_COLOR_JPEG = 6.0  # flow colour coding vs flow_vis' JPEG reference: mean absolute difference (uint8 levels)
 INSTANCE_ORACLE_AGREEMENT = 0.98  # fraction of the oracle's actor pixels given the same actor id
 KITTI_FLOW_PX = 1.0 / 128  # KITTI PNG quantisation (1/64 px steps)
+# Bird's-eye view (jaxfish.bev).
+BEV_HEIGHT_FROM_DEPTH_M = 2e-3  # height from the 24-bit BEV depth (50 m camera, float32) vs the capture's EXR

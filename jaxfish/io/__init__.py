@@ -3,6 +3,13 @@
 from ._atomic import atomic_path as atomic_path
 from ._atomic import atomic_write_bytes as atomic_write_bytes
 from ._atomic import atomic_write_text as atomic_write_text
+from ._bev import BEV_METADATA_ATTRIBUTE as BEV_METADATA_ATTRIBUTE
+from ._bev import bev_metadata as bev_metadata
+from ._bev import bev_sensor as bev_sensor
+from ._bev import capture_bev_ground_truth as capture_bev_ground_truth
+from ._bev import read_bev_metadata as read_bev_metadata
+from ._bev import write_bev_ground_truth as write_bev_ground_truth
+from ._bev import write_png_with_metadata as write_png_with_metadata
 from ._calibration_json import calibration_from_dict as calibration_from_dict
 from ._calibration_json import calibration_to_dict as calibration_to_dict
 from ._calibration_json import load_calibration as load_calibration
