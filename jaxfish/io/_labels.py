@@ -128,18 +128,37 @@ def boxes_2d_rows(xyxy: np.ndarray, present: np.ndarray, class_id: np.ndarray) -
     return rows  # type: ignore[return-value]
 
 
-def write_boxes_3d_pickle(path: str | os.PathLike, boxes: Mapping[int, Mapping[str, Any]]) -> Path:
-    """3D boxes as a pickle ``{actor_id: {"corners_world": (8, 3), "corners_vehicle": (8, 3),
-    "class_id": int, "class_name": str}}``: corners in CARLA world and ISO 8855 vehicle frames
-    (order `jaxfish.groundtruth.CORNER_SIGNS`). SynWoodScape's pickle has world corners only and
-    no class; this one adds both."""
-    clean = {int(k): {kk: (np.asarray(vv, np.float64) if kk.startswith("corners") else vv) for kk, vv in v.items()}
-             for k, v in boxes.items()}
+def write_boxes_3d_pickle(path: str | os.PathLike, boxes: Mapping[int, Any]) -> Path:
+    """3D boxes in SynWoodScape's released format: a pickle ``{actor_id (int): (8, 3) float64 corners
+    in CARLA world coordinates}`` (order `jaxfish.groundtruth.CORNER_SIGNS`), every actor, no class
+    (the class and vehicle-frame corners go to `write_boxes_3d_ext_json`)."""
+    clean = {}
+    for k, v in sorted(boxes.items()):
+        a = np.asarray(v, np.float64)
+        if a.shape != (8, 3):
+            raise ImageError(f"{path}: box {k}: corners must be (8, 3), got {a.shape}")
+        clean[int(k)] = a
     return atomic_write_bytes(path, pickle.dumps(clean, protocol=4))
 
 
-def read_boxes_3d_pickle(path: str | os.PathLike) -> dict[int, dict[str, Any]]:
-    """Read a 3D box pickle (trusted files only: pickle runs code)."""
+def write_boxes_3d_ext_json(path: str | os.PathLike, boxes: Mapping[int, Mapping[str, Any]]) -> Path:
+    """jaxfish's extra 3D box file (JSON): ``{"frames": ..., "boxes": [{"actor_id", "class_id",
+    "class_name", "corners_world" (8 x 3, CARLA world), "corners_vehicle" (8 x 3, ISO 8855 vehicle
+    frame at t)}, ...]}`` in actor-id order."""
+    rows = []
+    for k, v in sorted(boxes.items()):
+        rows.append({"actor_id": int(k), "class_id": int(v["class_id"]), "class_name": str(v["class_name"]),
+                     "corners_world": np.round(np.asarray(v["corners_world"], np.float64), 6).tolist(),
+                     "corners_vehicle": np.round(np.asarray(v["corners_vehicle"], np.float64), 6).tolist()})
+    doc = {"frames": {"corners_world": "CARLA world (x forward, y right, z up; left-handed), metres",
+                      "corners_vehicle": "ISO 8855 ego vehicle frame at t (x forward, y left, z up), metres"},
+           "corner_order": "index = 4 ix + 2 iy + iz over the signs (-, +) of the box axes (CARLA get_local_vertices)",
+           "boxes": rows}
+    return atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
+
+
+def read_boxes_3d_pickle(path: str | os.PathLike) -> dict[int, Any]:
+    """Read a 3D box pickle ``{actor_id: (8, 3) corners}`` (trusted files only: pickle runs code)."""
     path = Path(path)
     if not path.is_file():
         raise ImageError(f"{path}: file missing")
@@ -181,24 +200,107 @@ def write_depth_npy(path: str | os.PathLike, depth_m: np.ndarray) -> Path:
     return path
 
 
+def write_npz(path: str | os.PathLike, **arrays: np.ndarray) -> Path:
+    """``np.savez``-compatible ``.npz`` with fixed zip timestamps (1980-01-01), so the same arrays
+    always give the same bytes (``np.savez`` stamps the current time); atomic, no pickle."""
+    import zipfile
+
+    path = Path(path)
+    with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_STORED
+            with zf.open(info, "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, np.asanyarray(arr), allow_pickle=False)
+    return path
+
+
+#: Range (metres) spanned by the depth colour map: nearer is brightest, farther darkest.
+DEPTH_COLOR_RANGE_M = (0.5, 100.0)
+_MAGMA = np.asarray([[0, 0, 4], [59, 15, 112], [140, 41, 129], [222, 73, 104], [254, 159, 109], [252, 253, 191]], np.float64)
+
+
+def depth_to_color(depth_m: np.ndarray) -> np.ndarray:
+    """Colour rendering of a depth map (``depth_maps/colormap``): magma-like ramp on log depth over
+    `DEPTH_COLOR_RANGE_M` (near = bright yellow, far = dark purple); 0 (no ray) and the sky (1000)
+    are black. ``(H, W)`` metres -> ``(H, W, 3)`` uint8."""
+    d = np.asarray(depth_m, np.float64)
+    lo, hi = DEPTH_COLOR_RANGE_M
+    x = 1.0 - (np.log(np.clip(d, lo, hi)) - np.log(lo)) / (np.log(hi) - np.log(lo))
+    pos = x * (len(_MAGMA) - 1)
+    out = np.stack([np.interp(pos, np.arange(len(_MAGMA)), _MAGMA[:, c]) for c in range(3)], -1)
+    out = np.where(((d > 0) & (d < 999.0))[..., None], out, 0.0)
+    return np.rint(out).astype(np.uint8)
+
+
+def events_color(events: np.ndarray, *, width: int, height: int) -> np.ndarray:
+    """NumPy twin of `jaxfish.groundtruth.events_to_color` (no recompilation per event count):
+    white background, blue ``(0, 0, 255)`` where a pixel's events sum to a net positive polarity,
+    red ``(255, 0, 0)`` net negative. ``(H, W, 3)`` uint8."""
+    ev = np.asarray(events)
+    x, y = ev["x"].astype(np.int64), ev["y"].astype(np.int64)
+    pol = ev["pol"] if "pol" in (ev.dtype.names or ()) else ev["p"] > 0
+    ok = (x >= 0) & (x < width) & (y >= 0) & (y < height)
+    net = np.zeros(width * height, np.int64)
+    np.add.at(net, (y * width + x)[ok], np.where(pol, 1, -1)[ok])
+    net = net.reshape(height, width)
+    out = np.full((height, width, 3), 255, np.uint8)
+    out[net > 0] = (0, 0, 255)
+    out[net < 0] = (255, 0, 0)
+    return out
+
+
+def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.ndarray, x: np.ndarray, y: np.ndarray,
+                    t: np.ndarray, pol: np.ndarray) -> np.ndarray:
+    """NumPy twin of `jaxfish.groundtruth.map_events` + `compact_events` (same rule, same order:
+    stable sort by time, ties in face-event then fisheye-pixel order) for an `EventMap`'s
+    ``targets`` array; returns CARLA-dtype fisheye events (t unchanged, ns)."""
+    from ._carla import DVS_EVENT_DTYPE
+
+    tg_all = np.asarray(targets)
+    n_src = tg_all.shape[0]
+    s = int(face_size)
+    f, xi, yi = (np.asarray(a, np.int64) for a in (face, x, y))
+    inb = (f >= 0) & (xi >= 0) & (xi < s) & (yi >= 0) & (yi < s)
+    src = np.where(inb, (f * s + yi) * s + xi, 0)
+    inb &= src < n_src
+    tg = np.where(inb[:, None], tg_all[np.where(inb, src, 0)], -1)
+    ok = tg >= 0
+    m = tg.shape[1]
+    tt = np.repeat(np.asarray(t, np.int64), m)[ok.reshape(-1)]
+    pp = np.repeat(np.asarray(pol, bool), m)[ok.reshape(-1)]
+    flat = tg.reshape(-1)[ok.reshape(-1)]
+    order = np.argsort(tt, kind="stable")
+    out = np.empty(order.shape[0], DVS_EVENT_DTYPE)
+    out["x"], out["y"] = flat[order] % width, flat[order] // width
+    out["t"], out["pol"] = tt[order], pp[order]
+    return out
+
+
 # ---------------------------------------------------------------------------- capture -> ground truth
-def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None, backward_flow: bool = False,
-                         carla_version: str | None = None, **options: Any) -> dict[str, Any]:
+def _carla_version(reader, carla_version: str | None) -> str:
+    tags = str(reader.meta.get("carla_semantic_tags", "0.9.10"))
+    return carla_version or ("0.9.10" if tags in ("0.9.10", "0.9.11", "0.9.12", "0.9.13") else "0.9.14")
+
+
+def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None, event_map=None,
+                         backward_flow: bool = False, carla_version: str | None = None,
+                         **options: Any) -> dict[str, Any]:
     """Everything `jaxfish.groundtruth.fisheye_ground_truth` computes for one fisheye camera of a
     capture frame (`CaptureReader`), plus its events mapped to the fisheye.
 
-    ``lut`` (cube -> fisheye `Lut` of this camera) and ``rays`` (`pixel_rays`) are per-calibration
-    constants: pass them when processing many frames (built here otherwise). Returns ``{"truth":
-    CameraGroundTruth, "boxes_prev", "boxes": Boxes3D, "vehicle_to_world_prev", "vehicle_to_world":
-    Pose, "events": CARLA-dtype fisheye events (t in ns, time order), "camera": the fisheye
-    model, "actors": the actor records}``.
+    ``lut`` (cube -> fisheye `Lut` of this camera), ``rays`` (`pixel_rays`) and ``event_map``
+    (`jaxfish.groundtruth.event_map_from_lut` of the LUT) are per-calibration constants: pass them
+    when processing many frames (built here otherwise). Returns ``{"truth": CameraGroundTruth,
+    "boxes_prev", "boxes": Boxes3D, "vehicle_to_world_prev", "vehicle_to_world": Pose, "events":
+    CARLA-dtype fisheye events (t in ns, time order), "camera": the fisheye model, "actors": the
+    actor records}``.
     """
     import jax.numpy as jnp
 
     from .. import groundtruth as gt
     from ..reprojection import CubeRig, build_lut
     from ._capture import CaptureError
-    from ._carla import DVS_EVENT_DTYPE
 
     rig = reader.rig()
     if camera not in rig:
@@ -220,8 +322,7 @@ def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None
                                              np.asarray(ego["transform"]["rotation"], np.float32))
     except (KeyError, TypeError, ValueError) as e:
         raise CaptureError(f"{reader.root}: frame {frame}: malformed actors.json / ego.json ({e})") from e
-    tags = str(reader.meta.get("carla_semantic_tags", "0.9.10"))
-    version = carla_version or ("0.9.10" if tags in ("0.9.10", "0.9.11", "0.9.12", "0.9.13") else "0.9.14")
+    version = _carla_version(reader, carla_version)
     truth = gt.fisheye_ground_truth(lut, cam, calib.camera_to_vehicle, reader.faces_stack(frame, camera, "prev"),
                                     reader.faces_stack(frame, camera, "curr"), boxes_prev, boxes, v2w_p, v2w,
                                     backward_flow=backward_flow, carla_version=version, rays=rays, **options)
@@ -231,36 +332,49 @@ def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None
         cols["face"].append(np.full(ev.shape[0], i, np.int32))
         for k in ("x", "y", "t", "pol"):
             cols[k].append(ev[k])
-    cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
-    events = np.empty(0, DVS_EVENT_DTYPE)
-    if cat["t"].size:
-        emap = gt.event_map_from_lut(lut)
-        mapped = gt.compact_events(gt.map_events(emap, cat["face"], cat["x"].astype(np.int32), cat["y"].astype(np.int32),
-                                                 cat["t"].astype(np.int64), cat["pol"].astype(bool)))
-        events = np.empty(mapped["x"].shape[0], DVS_EVENT_DTYPE)
-        events["x"], events["y"], events["t"], events["pol"] = mapped["x"], mapped["y"], mapped["t"], mapped["polarity"]
+    cat = {k: np.concatenate(v) for k, v in cols.items()}
+    if event_map is None:
+        event_map = gt.event_map_from_lut(lut)
+    h, w = lut.target_shape
+    events = map_face_events(np.asarray(event_map.targets), int(w), int(event_map.face_size), cat["face"], cat["x"],
+                             cat["y"], cat["t"], cat["pol"])
     return {"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
             "vehicle_to_world": v2w, "events": events, "camera": cam, "actors": actors}
 
 
-def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str, result: Mapping[str, Any], *,
-                              motion_threshold_m: float = 0.5) -> list[Path]:
-    """Write one camera's ground truth (a `capture_ground_truth` result) in SynWoodScape's layout
-    under ``root`` with file stem ``{sample}_{camera}``: ``rgb_images``, ``previous_images``,
-    ``depth_maps/raw_data`` (range, ``.npy``) and ``depth_maps/z_depth`` (``.npy``),
-    ``semantic_annotations``, ``instance_annotations`` (actor ids) and ``motion_annotations``
-    (0/255) as ``gtLabels`` + ``rgbLabels``, ``optical_flow/{raw_data .flo, kitti .png,
-    color_coded .png}`` (forward, t-1 -> t on the t-1 grid), ``dvs_signals/{raw_data .npy (CARLA
-    dtype, ns), tonic .npz (µs), color_coded .png}``, ``box_2d_annotations`` (visible boxes) and
-    ``box_2d_full_annotations`` (full extent) CSV, ``box_3d_annotations/{sample}.pkl`` and
-    ``motion_annotations/displacements/{sample}.txt``. Returns the paths written."""
+def _jitted():
     import jax
 
     from .. import groundtruth as gt
-    from ._events import write_events_color, write_events_npy, write_events_tonic
+
+    global _JIT
+    if _JIT is None:
+        _JIT = {"colorize": jax.jit(gt.colorize_labels), "instance_colors": jax.jit(gt.instance_colors),
+                "z_depth": jax.jit(gt.range_to_z_depth)}
+    return _JIT
+
+
+_JIT: dict[str, Any] | None = None
+
+
+def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str, result: Mapping[str, Any], *,
+                              motion_threshold_m: float = 0.5) -> list[Path]:
+    """Write one camera's ground truth (a `capture_ground_truth` result, or the BEV's
+    `capture_bev_ground_truth` result with camera ``"BEV"``) in SynWoodScape's layout under
+    ``root`` with file stem ``{sample}_{camera}``: ``rgb_images``, ``previous_images``
+    (``{stem}_prev.png``), ``depth_maps/raw_data`` (range along the ray, float32 ``.npy``, sky
+    1000), ``depth_maps/z_depth`` (``.npy``) and ``depth_maps/colormap`` (``.png``),
+    ``semantic_annotations``, ``instance_annotations`` (actor ids) and ``motion_annotations``
+    (0/255) as ``gtLabels`` + ``rgbLabels``, ``optical_flow/{raw_data .flo, kitti .png,
+    color_coded .png}`` (forward, t-1 -> t on the t-1 grid), ``dvs_signals/{raw_data .npy (CARLA
+    dtype, ns), tonic .npz (µs), color_coded .png}`` (skipped when ``result["events"] is None``,
+    e.g. the BEV), ``box_2d_annotations`` (visible boxes) and ``box_2d_full_annotations`` (full
+    extent) CSV. The per-sample files (3D boxes, displacements) are `write_sample_ground_truth`'s.
+    Every file is written atomically and deterministically. Returns the paths written."""
+    from ._events import carla_to_tonic, write_events_npy
     from ._flow import write_flo, write_flow_color, write_kitti_flow
 
-    colorize, inst_colors, z_depth = jax.jit(gt.colorize_labels), jax.jit(gt.instance_colors), jax.jit(gt.range_to_z_depth)
+    jit = _jitted()
     root = Path(root)
     t = result["truth"]
     boxes = result["boxes"]
@@ -270,16 +384,19 @@ def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str,
     h, w = np.asarray(t.images.valid).shape
     add(write_image(root / "rgb_images" / f"{stem}.png", np.asarray(t.images.rgb)))
     add(write_image(root / "previous_images" / f"{stem}_prev.png", np.asarray(t.images_prev.rgb)))
-    add(write_depth_npy(root / "depth_maps" / "raw_data" / f"{stem}.npy", np.asarray(t.images.range_m)))
+    rng = np.asarray(t.images.range_m, np.float32)
+    add(write_depth_npy(root / "depth_maps" / "raw_data" / f"{stem}.npy", rng))
     add(write_depth_npy(root / "depth_maps" / "z_depth" / f"{stem}.npy",
-                        np.asarray(z_depth(result["camera"], t.images.range_m))))
+                        np.asarray(jit["z_depth"](result["camera"], t.images.range_m))))
+    add(write_image(root / "depth_maps" / "colormap" / f"{stem}.png", depth_to_color(rng)))
     pal = synwoodscape_palette_dict()
     sem = np.asarray(t.semantic)
     add(write_label_png(root / "semantic_annotations" / "gtLabels" / f"{stem}.png", sem))
-    add(write_color_png(root / "semantic_annotations" / "rgbLabels" / f"{stem}.png", np.asarray(colorize(sem)), pal))
+    add(write_color_png(root / "semantic_annotations" / "rgbLabels" / f"{stem}.png", np.asarray(jit["colorize"](sem)), pal))
     ids = np.asarray(t.instances.actor_id)
     add(write_label_png(root / "instance_annotations" / "gtLabels" / f"{stem}.png", ids))
-    add(write_color_png(root / "instance_annotations" / "rgbLabels" / f"{stem}.png", np.asarray(inst_colors(ids)),
+    add(write_color_png(root / "instance_annotations" / "rgbLabels" / f"{stem}.png",
+                        np.asarray(jit["instance_colors"](ids)),
                         {"colors": "jaxfish.groundtruth.instance_colors(actor_id)", "background": [0, 0, 0]}))
     mot = np.asarray(t.motion).astype(np.uint8) * 255
     add(write_label_png(root / "motion_annotations" / "gtLabels" / f"{stem}.png", mot))
@@ -290,24 +407,44 @@ def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str,
     add(write_flo(root / "optical_flow" / "raw_data" / f"{stem}.flo", np.where(fv[..., None], fl, 0.0)))
     add(write_kitti_flow(root / "optical_flow" / "kitti" / f"{stem}.png", fl, fv))
     add(write_flow_color(root / "optical_flow" / "color_coded" / f"{stem}.png", fl, fv))
-    ev = result["events"]
-    add(write_events_npy(root / "dvs_signals" / "raw_data" / f"{stem}.npy", ev))
-    add(write_events_tonic(root / "dvs_signals" / "tonic" / f"{stem}.npz", ev, width=w, height=h))
-    add(write_events_color(root / "dvs_signals" / "color_coded" / f"{stem}.png", ev, width=w, height=h))
+    ev = result.get("events")
+    if ev is not None:
+        add(write_events_npy(root / "dvs_signals" / "raw_data" / f"{stem}.npy", ev))
+        add(write_npz(root / "dvs_signals" / "tonic" / f"{stem}.npz", events=carla_to_tonic(ev),
+                      time_unit=np.asarray("us"), sensor_size=np.asarray([w, h, 2], np.int64)))
+        add(write_image(root / "dvs_signals" / "color_coded" / f"{stem}.png", events_color(ev, width=w, height=h)))
     cls = np.asarray(boxes.class_id)
     add(write_boxes_2d_csv(root / "box_2d_annotations" / f"{stem}.txt",
                            boxes_2d_rows(np.asarray(t.boxes_2d.xyxy), np.asarray(t.boxes_2d.present), cls)))
     add(write_boxes_2d_csv(root / "box_2d_full_annotations" / f"{stem}.txt",
                            boxes_2d_rows(np.asarray(t.boxes_2d_full.xyxy), np.asarray(t.boxes_2d_full.present), cls)))
+    return out
+
+
+def write_sample_ground_truth(root: str | os.PathLike, sample: str, result: Mapping[str, Any], *,
+                              motion_threshold_m: float = 0.5) -> list[Path]:
+    """Write the per-sample (camera-independent) files of a sample from any camera's
+    `capture_ground_truth` result: ``box_3d_annotations/{sample}.pkl`` (SynWoodScape's format:
+    ``{actor_id: (8, 3) CARLA-world corners}``, every actor), ``box_3d_annotations_ext/{sample}.json``
+    (class and ISO-vehicle corners, `write_boxes_3d_ext_json`) and ``distances_traveled/{sample}.txt``
+    (every actor's displacement between t-1 and t, `write_displacements`). Returns the paths."""
+    from .. import groundtruth as gt
+
+    root = Path(root)
+    boxes = result["boxes"]
+    cls = np.asarray(boxes.class_id)
     world = np.asarray(boxes.corners(), np.float64)
     veh = np.asarray(gt.boxes_in_frame(boxes, result["vehicle_to_world"].inverse()), np.float64)
     names = gt.SYNWOODSCAPE_CLASSES
     act = np.asarray(boxes.active)
-    box3d = {int(a): {"corners_world": world[i], "corners_vehicle": veh[i], "class_id": int(cls[i]),
-                      "class_name": names[int(cls[i])] if 0 <= int(cls[i]) < len(names) else "unknown"}
-             for i, a in enumerate(np.asarray(boxes.actor_id)) if act[i]}
-    add(write_boxes_3d_pickle(root / "box_3d_annotations" / f"{sample}.pkl", box3d))
-    disp = np.asarray(t.displacement_m)
-    add(write_displacements(root / "motion_annotations" / "displacements" / f"{sample}.txt",
-                            np.asarray(boxes.actor_id)[act], cls[act], disp[act], threshold_m=motion_threshold_m))
+    aid = np.asarray(boxes.actor_id)
+    out = [write_boxes_3d_pickle(root / "box_3d_annotations" / f"{sample}.pkl",
+                                 {int(a): world[i] for i, a in enumerate(aid) if act[i]})]
+    ext = {int(a): {"corners_world": world[i], "corners_vehicle": veh[i], "class_id": int(cls[i]),
+                    "class_name": names[int(cls[i])] if 0 <= int(cls[i]) < len(names) else "unknown"}
+           for i, a in enumerate(aid) if act[i]}
+    out.append(write_boxes_3d_ext_json(root / "box_3d_annotations_ext" / f"{sample}.json", ext))
+    disp = np.asarray(result["truth"].displacement_m)
+    out.append(write_displacements(root / "distances_traveled" / f"{sample}.txt", aid[act], cls[act], disp[act],
+                                   threshold_m=motion_threshold_m))
     return out

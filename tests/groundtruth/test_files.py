@@ -19,6 +19,7 @@ from jaxfish.io import (
     write_camera_ground_truth,
     write_capture_header,
     write_frame,
+    write_sample_ground_truth,
 )
 from jaxfish.scene import RADAR_DTYPE, SEMANTIC_LIDAR_DTYPE, CameraCapture, CameraImages, CaptureConfig, sensor_mounts
 
@@ -70,7 +71,7 @@ def test_writer_produces_the_synwoodscape_layout(sample, capture, tmp_path):
                  "semantic_annotations/gtLabels/00003_FV.png", "semantic_annotations/rgbLabels/00003_FV.png",
                  "instance_annotations/gtLabels/00003_FV.png", "motion_annotations/gtLabels/00003_FV.png",
                  "optical_flow/raw_data/00003_FV.flo", "optical_flow/color_coded/00003_FV.png",
-                 "dvs_signals/raw_data/00003_FV.npy", "box_2d_annotations/00003_FV.txt", "box_3d_annotations/00003.pkl"):
+                 "dvs_signals/raw_data/00003_FV.npy", "box_2d_annotations/00003_FV.txt", "depth_maps/colormap/00003_FV.png"):
         assert want in rel
     t = res["truth"]
     np.testing.assert_array_equal(read_label_png(tmp_path / "instance_annotations/gtLabels/00003_FV.png"), np.asarray(t.instances.actor_id))
@@ -80,6 +81,10 @@ def test_writer_produces_the_synwoodscape_layout(sample, capture, tmp_path):
     np.testing.assert_array_equal(read_events_npy(tmp_path / "dvs_signals/raw_data/00003_FV.npy"), res["events"])
     rows = read_boxes_2d_csv(tmp_path / "box_2d_annotations/00003_FV.txt")
     assert len(rows) == int(np.asarray(t.boxes_2d.present).sum()) and all(r[1] in (4, 10, 21, 24) for r in rows)
-    box3d = read_boxes_3d_pickle(tmp_path / "box_3d_annotations/00003.pkl")
+    per_sample = write_sample_ground_truth(tmp_path, "00003", res)
+    assert {str(p.relative_to(tmp_path)) for p in per_sample} == {
+        "box_3d_annotations/00003.pkl", "box_3d_annotations_ext/00003.json", "distances_traveled/00003.txt"}
+    box3d = read_boxes_3d_pickle(tmp_path / "box_3d_annotations/00003.pkl")  # SynWoodScape's format
     assert set(box3d) == {a["id"] for a in res["actors"]}
-    assert read_displacements(tmp_path / "motion_annotations/displacements/00003.txt").keys() == box3d.keys()
+    assert all(isinstance(v, np.ndarray) and v.shape == (8, 3) for v in box3d.values())
+    assert read_displacements(tmp_path / "distances_traveled/00003.txt").keys() == box3d.keys()
