@@ -50,3 +50,7 @@ INSTANCE_ORACLE_AGREEMENT = 0.98  # fraction of the oracle's actor pixels given 
 KITTI_FLOW_PX = 1.0 / 128  # KITTI PNG quantisation (1/64 px steps)
 # Bird's-eye view (jaxfish.bev).
 BEV_HEIGHT_FROM_DEPTH_M = 2e-3  # height from the 24-bit BEV depth (50 m camera, float32) vs the capture's EXR
+BEV_FUSED_HEIGHT_M = 1e-3  # fused height of a box top vs its known height (1 mm z-buffer quantum, float32 points)
+# CARLA capture: height map from a view's 24-bit planar depth vs the embedded scene's exact world z.
+CARLA_HEIGHT_FROM_DEPTH_M = 2e-3
+BEV_EAGER_JIT_CELL_FRACTION = 2e-3  # fused cells that may differ between eager / jit / vmap (float32 rounding at cell edges)

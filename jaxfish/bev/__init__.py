@@ -1,6 +1,15 @@
 """Bird's-eye view: the top-view grid, height maps and occupancy, multi-camera fusion of fisheye
 range + semantic maps, the inverse-perspective-mapping (IPM) baseline and mIoU (see ``docs/bev.md``)."""
 
+from ._cameras import rig_rays as rig_rays
+from ._cameras import stack_cameras as stack_cameras
+from ._cameras import stack_poses as stack_poses
+from ._fusion import HEIGHT_QUANTUM_M as HEIGHT_QUANTUM_M
+from ._fusion import MAX_CLASSES as MAX_CLASSES
+from ._fusion import MIN_HEIGHT_M as MIN_HEIGHT_M
+from ._fusion import UNOBSERVED as UNOBSERVED
+from ._fusion import BevFusion as BevFusion
+from ._fusion import fuse_cameras as fuse_cameras
 from ._grid import HEIGHT_COLOR_RANGE_M as HEIGHT_COLOR_RANGE_M
 from ._grid import OCCUPANCY_MIN_HEIGHT_M as OCCUPANCY_MIN_HEIGHT_M
 from ._grid import bev_ground_points as bev_ground_points
@@ -9,3 +18,7 @@ from ._grid import colorize_height as colorize_height
 from ._grid import height_map as height_map
 from ._grid import occupancy_map as occupancy_map
 from ._grid import vehicle_to_bev_pixels as vehicle_to_bev_pixels
+from ._ipm import IpmBev as IpmBev
+from ._ipm import ipm_semantics as ipm_semantics
+from ._metrics import IouScores as IouScores
+from ._metrics import semantic_iou as semantic_iou
