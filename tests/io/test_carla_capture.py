@@ -1,0 +1,385 @@
+"""The CARLA capture program's pure parts, driven by fake carla objects (no server, no ``carla``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from types import SimpleNamespace
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfish as jf
+from jaxfish.cameras import Orthographic
+from jaxfish.io import (
+    DVS_EVENT_DTYPE,
+    CaptureReader,
+    CarlaCaptureError,
+    CarlaImages,
+    bev_pinhole,
+    camera_attributes,
+    camera_mount,
+    capture_sensor_specs,
+    carla_actor_records,
+    carla_angles_from_matrix,
+    carla_ego_motion,
+    carla_semantic_tags,
+    carla_street_frame,
+    cube_face_mounts,
+    decode_depth,
+    decode_instance,
+    decode_semantic,
+    dvs_to_events,
+    encode_depth,
+    encode_instance,
+    encode_semantic,
+    finish_carla_header,
+    gnss_to_dict,
+    height_from_depth,
+    image_to_bgra,
+    imu_to_dict,
+    lidar_attributes,
+    lidar_to_points,
+    parse_carla_version,
+    radar_to_records,
+    read_image,
+    rear_axle_origin,
+    rig_on_actor,
+    semantic_lidar_to_records,
+    sensor_carla_mounts,
+    set_blueprint_attributes,
+    synthesize_capture,
+    validate_weather,
+    with_bev_altitude,
+    write_capture_header,
+    write_carla_frame,
+)
+from jaxfish.reprojection import CUBE_FACE_ROTATIONS, FIVE_FACES, CubeRig
+from jaxfish.scene import (
+    RADAR_DTYPE,
+    SEMANTIC_LIDAR_DTYPE,
+    CaptureConfig,
+    bev_camera,
+    front_camera,
+    sensor_mounts,
+)
+from jaxfish.transforms import Pose, carla_camera_pose_to_opencv, carla_rotation_matrix
+from tests.tolerances import CARLA_HEIGHT_FROM_DEPTH_M, POSE_F64
+
+# The sizes of tests/io/test_capture.py's capture: the embedded scene's compiled renderers are shared.
+SMALL = CaptureConfig(face_size=32, bev_size=32, front_width=32, front_height=24, lidar_channels=4,
+                      lidar_points_per_channel=64, radar_points=32, dvs_substeps=2)
+
+
+def _image(bgra: np.ndarray) -> SimpleNamespace:
+    """A fake ``carla.Image``."""
+    return SimpleNamespace(raw_data=memoryview(np.ascontiguousarray(bgra).tobytes()), width=bgra.shape[1],
+                           height=bgra.shape[0], frame=1)
+
+
+def _vec(v) -> SimpleNamespace:
+    return SimpleNamespace(x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+def _transform(d) -> SimpleNamespace:
+    p, y, r = d["rotation"]
+    return SimpleNamespace(location=_vec(d["location"]), rotation=SimpleNamespace(pitch=p, yaw=y, roll=r))
+
+
+def _matrix(rotation) -> np.ndarray:
+    return np.asarray(carla_rotation_matrix(*rotation, dtype=jnp.float64))
+
+
+# ---------------------------------------------------------------------------- mounts
+def test_cube_face_mounts_are_the_embedded_scene_faces():
+    rig = jf.default_rig()
+    mounts = cube_face_mounts(rig)
+    cube = CubeRig(8, dtype=jnp.float64)
+    for name, calib in rig.items():
+        # The embedded scene renders face `f` of a camera with `camera_to_vehicle @ CubeRig.face_pose(f)`.
+        mount = Pose(calib.camera_to_vehicle.rotation_matrix, calib.camera_to_vehicle.translation, dtype=jnp.float64)
+        fisheye = camera_mount(mount)
+        for face in FIVE_FACES:
+            ref = mount @ cube.face_pose(face)
+            got = carla_camera_pose_to_opencv(mounts[name][face].pose())
+            np.testing.assert_allclose(got.rotation_matrix, ref.rotation_matrix, atol=POSE_F64)
+            np.testing.assert_allclose(got.translation, ref.translation, atol=POSE_F64)
+            # And it is the fisheye's own CARLA transform rotated by the face's relative CARLA rotation.
+            np.testing.assert_allclose(_matrix(mounts[name][face].rotation),
+                                       _matrix(fisheye.rotation) @ _matrix(CUBE_FACE_ROTATIONS[face]), atol=POSE_F64)
+            np.testing.assert_allclose(mounts[name][face].location, np.asarray(calib.camera_to_vehicle.translation)
+                                       * [1.0, -1.0, 1.0], atol=POSE_F64)
+    # FV (22 degrees down, looking forward): its front face is pitched -22, level, at y = 0.
+    np.testing.assert_allclose(mounts["FV"]["front"].rotation, (-22.0, 0.0, 0.0), atol=1e-9)
+
+
+def test_angles_at_gimbal_lock_and_other_sensor_mounts():
+    for rot in [(90.0, 30.0, 0.0), (-90.0, -120.0, 0.0), (89.999, 10.0, 5.0), (12.0, 170.0, -179.0)]:
+        back = carla_angles_from_matrix(_matrix(rot))
+        np.testing.assert_allclose(_matrix(back), _matrix(rot), atol=1e-9)
+    rig = jf.default_rig()
+    mounts = sensor_mounts(rig, SMALL)
+    ours = sensor_carla_mounts(mounts)
+    theirs = mounts.carla_transforms()  # what the embedded capture writes to sensors.json
+    for name in ("bev", "front", "lidar", "radar", "imu", "gnss"):
+        np.testing.assert_allclose(ours[name].location, theirs[name]["location"], atol=POSE_F64)
+        np.testing.assert_allclose(_matrix(ours[name].rotation), _matrix(theirs[name]["rotation"]), atol=1e-9)
+    for name in ("bev", "front"):  # the camera poses are the embedded scene's
+        pose = getattr(mounts, f"{name}_camera_to_vehicle")
+        np.testing.assert_allclose(carla_camera_pose_to_opencv(ours[name].pose()).rotation_matrix,
+                                   pose.rotation_matrix, atol=POSE_F64)
+    raised = sensor_carla_mounts(with_bev_altitude(mounts, bev_altitude_m=400.0))
+    assert raised["bev"].location[2] == 400.0 and raised["bev"].rotation == ours["bev"].rotation
+
+
+def test_bev_pinhole_puts_ground_points_where_the_orthographic_bev_does():
+    config = CaptureConfig(bev_size=64, bev_metres_per_pixel=0.1)
+    ref = bev_camera(config)  # the embedded BEV camera, rebuilt in float64
+    ortho = Orthographic(config.bev_metres_per_pixel, width=ref.width, height=ref.height, dtype=jnp.float64)
+    pin = bev_pinhole(config, 300.0)
+    pose = with_bev_altitude(sensor_mounts(None, config), bev_altitude_m=300.0).bev_camera_to_vehicle
+    rng = np.random.default_rng(0)
+    ground = np.concatenate([rng.uniform(-3.0, 3.0, (50, 2)), np.zeros((50, 1))], axis=-1)  # ISO, z = 0
+    p_cam = pose.inverse().apply(jnp.asarray(ground))
+    uv_pin, ok = pin.project(p_cam)
+    uv_ortho, _ = ortho.project(p_cam)
+    assert bool(np.all(ok))
+    np.testing.assert_allclose(uv_pin, uv_ortho, atol=1e-9)
+
+
+def test_rear_axle_origin_and_rig_on_actor():
+    # Ego at (10, 20, 0.5) yawed 30 degrees; wheels at actor x = +1.4 (front) and -1.3 (rear), y = +-0.8.
+    loc, rot = (10.0, 20.0, 0.5), (0.0, 30.0, 0.0)
+    r = _matrix(rot)
+    local = np.array([[1.4, -0.8, 0.3], [1.4, 0.8, 0.3], [-1.3, -0.8, 0.3], [-1.3, 0.8, 0.3]])
+    world_cm = (local @ r.T + loc) * 100.0
+    origin = rear_axle_origin([_vec(w) for w in world_cm], (loc, rot))
+    np.testing.assert_allclose(origin, (-1.3, 0.0, 0.0), atol=1e-9)
+    rig = jf.default_rig()
+    moved = rig_on_actor(rig, origin)
+    for name in rig:
+        np.testing.assert_allclose(np.asarray(moved[name].camera_to_vehicle.translation)
+                                   - np.asarray(rig[name].camera_to_vehicle.translation), [-1.3, 0.0, 0.0], atol=1e-6)
+        np.testing.assert_array_equal(moved[name].camera_to_vehicle.rotation_matrix,
+                                      rig[name].camera_to_vehicle.rotation_matrix)
+
+
+# ---------------------------------------------------------------------------- attributes and specs
+def test_blueprint_attributes_fix_exposure_and_skip_missing_ones():
+    rgb = camera_attributes("rgb", 32, 32)
+    assert rgb["exposure_mode"] == "manual" and rgb["fov"] == "90.0" and rgb["motion_blur_intensity"] == "0.0"
+    assert rgb["image_size_x"] == "32" and rgb["sensor_tick"] == "0.0"
+    assert "exposure_mode" not in camera_attributes("depth", 32, 32)
+    dvs = camera_attributes("dvs", 32, 32, config=SMALL)
+    assert dvs["positive_threshold"] == dvs["negative_threshold"] == "0.3" and dvs["exposure_mode"] == "manual"
+    lidar = lidar_attributes(SMALL, dt_s=0.1)
+    assert lidar["points_per_second"] == str(4 * 64 * 10) and lidar["rotation_frequency"] == "10.0"
+    with pytest.raises(CarlaCaptureError, match="kind"):
+        camera_attributes("thermal", 32, 32)
+
+    class Blueprint:
+        def __init__(self, names):
+            self.values = dict.fromkeys(names)
+
+        def has_attribute(self, key):
+            return key in self.values
+
+        def set_attribute(self, key, value):
+            assert isinstance(value, str)
+            self.values[key] = value
+
+    bp = Blueprint([k for k in rgb if k not in ("lens_flare_intensity", "exposure_compensation")])
+    assert set_blueprint_attributes(bp, rgb) == ("exposure_compensation", "lens_flare_intensity")
+    assert bp.values["exposure_mode"] == "manual"
+    rig = {k: v for k, v in jf.default_rig().items() if k in ("FV", "RV")}
+    mounts = sensor_mounts(rig, SMALL)
+    old = capture_sensor_specs(rig, SMALL, mounts, carla_version="0.9.13")
+    new = capture_sensor_specs(rig, SMALL, mounts, carla_version="0.9.15")
+    assert len(old) == 2 * 5 * 4 + 2 * 3 + 5 and len(new) == 2 * 5 * 5 + 2 * 4 + 5
+    keys = {s.key for s in new}
+    assert ("camera", "RV", "top", "instance") in keys and ("view", "bev", "depth") in keys and ("gnss",) in keys
+    assert len(keys) == len(new)
+
+
+def test_versions_and_weather_presets():
+    assert carla_semantic_tags("0.9.10") == carla_semantic_tags("0.9.13") == "0.9.10"
+    assert carla_semantic_tags("0.9.14") == carla_semantic_tags("0.9.16-12-gabc") == "0.9.14"
+    assert parse_carla_version("0.9.15.2") == (0, 9, 15)
+    for bad in ("0.9.9", "0.10.0", "latest"):
+        with pytest.raises(CarlaCaptureError, match="version"):
+            parse_carla_version(bad)
+    assert validate_weather(["ClearNoon", "WetSunset", "ClearNoon"]) == ("ClearNoon", "WetSunset")
+    with pytest.raises(CarlaCaptureError, match="did you mean 'ClearNoon'"):
+        validate_weather(["ClearNon"])
+    with pytest.raises(CarlaCaptureError, match="no weather"):
+        validate_weather([])
+    old_carla = SimpleNamespace(WeatherParameters=SimpleNamespace(ClearNoon=object()))
+    assert validate_weather(["ClearNoon"], carla=old_carla) == ("ClearNoon",)
+    with pytest.raises(CarlaCaptureError, match="ClearNight"):
+        validate_weather(["ClearNight"], carla=old_carla)
+
+
+# ---------------------------------------------------------------------------- sensor data
+def test_image_buffers_round_trip_with_the_carla_codecs():
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.5, 999.0, (6, 5))
+    tags = rng.integers(0, 23, (6, 5))
+    ids = rng.integers(0, 65536, (6, 5))
+    enc = encode_depth(depth)
+    np.testing.assert_array_equal(image_to_bgra(_image(enc)), enc)
+    np.testing.assert_array_equal(decode_depth(image_to_bgra(_image(enc))), decode_depth(enc))
+    np.testing.assert_array_equal(decode_semantic(image_to_bgra(_image(encode_semantic(tags)))), tags)
+    t, i = decode_instance(image_to_bgra(_image(encode_instance(tags, ids))))
+    np.testing.assert_array_equal(t, tags)
+    np.testing.assert_array_equal(i, ids)
+    bad = SimpleNamespace(raw_data=bytes(6 * 5 * 4 - 1), width=5, height=6)
+    with pytest.raises(CarlaCaptureError, match="FV/front/rgb.*5x6"):
+        image_to_bgra(bad, "FV/front/rgb")
+
+
+def test_dvs_and_point_buffers():
+    ev = np.zeros(6, DVS_EVENT_DTYPE)
+    ev["x"], ev["y"] = [1, 2, 3, 4, 0, 1], [0, 1, 2, 3, 4, 0]
+    ev["t"] = [100, 100, 150, 150, 150, 200]
+    ev["pol"] = [True, False, True, True, False, False]
+    out = dvs_to_events(SimpleNamespace(raw_data=ev.tobytes(), width=5, height=5))
+    assert out.dtype == DVS_EVENT_DTYPE and out.dtype.itemsize == 13
+    np.testing.assert_array_equal(out, ev)  # sorted input: order kept, ties included
+    shuffled = ev[[5, 2, 0, 3, 1, 4]]
+    np.testing.assert_array_equal(dvs_to_events(shuffled.tobytes())["t"], np.sort(ev["t"]))
+    np.testing.assert_array_equal(dvs_to_events(shuffled.tobytes())[2:5], shuffled[[1, 3, 5]])  # stable
+    assert dvs_to_events(b"").shape == (0,)
+    with pytest.raises(CarlaCaptureError, match="13-byte"):
+        dvs_to_events(b"\0" * 14)
+    with pytest.raises(CarlaCaptureError, match="outside"):
+        dvs_to_events(SimpleNamespace(raw_data=ev.tobytes(), width=4, height=5))
+    pts = np.arange(12, dtype=np.float32).reshape(3, 4)
+    np.testing.assert_array_equal(lidar_to_points(SimpleNamespace(raw_data=pts.tobytes())), pts)
+    sem = np.zeros(3, SEMANTIC_LIDAR_DTYPE)
+    sem["x"], sem["ObjIdx"], sem["ObjTag"] = [1.0, 2.0, 3.0], [0, 7, 9], [7, 10, 4]
+    np.testing.assert_array_equal(semantic_lidar_to_records(SimpleNamespace(raw_data=sem.tobytes())), sem)
+    radar = np.zeros(2, RADAR_DTYPE)
+    radar["velocity"], radar["depth"] = [-3.0, 1.5], [10.0, 20.0]
+    np.testing.assert_array_equal(radar_to_records(radar.tobytes()), radar)
+    for fn, n in ((lidar_to_points, 17), (semantic_lidar_to_records, 25), (radar_to_records, 15)):
+        with pytest.raises(CarlaCaptureError, match="whole number"):
+            fn(b"\0" * n)
+
+
+# ---------------------------------------------------------------------------- a whole frame
+@pytest.fixture(scope="module")
+def embedded(tmp_path_factory):
+    rig = {"FV": jf.default_rig()["FV"].resize(96, 72).astype(jnp.float32)}
+    root = tmp_path_factory.mktemp("embedded")
+    synthesize_capture(root, rig, frames=1, seed=3, config=SMALL)
+    return root, rig
+
+
+def _fake_world(root, frame):
+    """Fake CARLA actors and world snapshots at t-1 and t rebuilt from an embedded capture's JSON."""
+    reader = CaptureReader(root)
+    actors, ego = reader.actors(frame), reader.ego(frame)
+    fake_actors, snaps = [], ({}, {})
+    for a in actors:
+        wheels = "2" if a["category"] == "two_wheeler" else "4"
+        fake_actors.append(SimpleNamespace(
+            id=a["id"], type_id=a["type_id"], attributes={"number_of_wheels": wheels}, semantic_tags=[a["semantic_tag"]],
+            bounding_box=SimpleNamespace(location=_vec(a["bounding_box"]["location"]),
+                                         extent=_vec(a["bounding_box"]["extent"]))))
+        accel = ego["acceleration"] if a["is_ego"] else (0.0, 0.0, 0.0)
+        for snap, key in zip(snaps, ("transform_prev", "transform"), strict=True):
+            snap[a["id"]] = SimpleNamespace(get_transform=lambda t=_transform(a[key]): t,
+                                            get_velocity=lambda v=_vec(a["velocity"]): v,
+                                            get_angular_velocity=lambda v=_vec(a["angular_velocity"]): v,
+                                            get_acceleration=lambda v=_vec(accel): v)
+    world = [SimpleNamespace(find=s.get) for s in snaps]
+    return reader, fake_actors[::-1], world, ego  # reversed: the records put the ego first themselves
+
+
+def test_embedded_frame_through_the_carla_path_is_byte_identical(embedded, tmp_path):
+    root, rig = embedded
+    reader, fake_actors, (snap_prev, snap), ego = _fake_world(root, 0)
+    records = carla_actor_records(fake_actors, snap_prev, snap, ego_id=ego["id"], tag_table="0.9.10")
+    frame = carla_street_frame(0, ego["timestamp_s"], records, carla_ego_motion(snap.find(ego["id"])),
+                               dt_s=reader.meta["dt_s"], seed=3)
+    d = root / "frames" / "000000"
+
+    def raw(directory, instant):
+        return CarlaImages(*(image_to_bgra(_image(read_image(directory / f"{k}_{instant}.png")))
+                             for k in ("rgb", "depth", "semantic", "instance")))
+
+    faces = {"FV": {f: (raw(d / "cameras" / "FV" / f, "prev"), raw(d / "cameras" / "FV" / f, "curr"),
+                        dvs_to_events(reader.dvs(0, "FV", f).tobytes()))
+                    for f in SMALL.faces}}
+    views = {v: (raw(d / v, "prev"), raw(d / v, "curr"), read_image(d / v / "height_curr.exr")[..., 0])
+             for v in ("bev", "front")}
+    imu, gnss = reader.imu(0), reader.gnss(0)
+    fake_imu = SimpleNamespace(accelerometer=_vec(imu["accelerometer"]), gyroscope=_vec(imu["gyroscope"]),
+                               compass=imu["compass"], timestamp=imu["timestamp_s"])
+    fake_gnss = SimpleNamespace(timestamp=gnss["timestamp_s"], **{k: gnss[k] for k in ("latitude", "longitude", "altitude")})
+    out = tmp_path / "carla"
+    mounts = sensor_mounts(rig, SMALL)
+    write_capture_header(out, rig, SMALL, mounts, seed=3)
+    write_carla_frame(out, frame, faces=faces, views=views,
+                      lidar=lidar_to_points(reader.lidar(0).tobytes()),
+                      semantic_lidar=semantic_lidar_to_records(reader.semantic_lidar(0).tobytes()),
+                      radar=radar_to_records(reader.radar(0).tobytes()), imu=imu_to_dict(fake_imu),
+                      gnss=gnss_to_dict(fake_gnss))
+    files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
+    different = [str(f) for f in files if (root / f).read_bytes() != (out / f).read_bytes()]
+    assert not different, different
+    # CARLA 0.9.10-0.9.13 have no instance camera: the tag and actor id 0 are written instead.
+    finish_carla_header(out, carla_version="0.9.12", mounts=sensor_carla_mounts(mounts), bev_altitude_m=500.0,
+                        config=SMALL, geo={"latitude": 1.0, "longitude": 2.0, "altitude": 3.0}, extra={"town": "T"})
+    old = faces["FV"]["top"][1]
+    write_carla_frame(out, dataclasses.replace(frame, frame=1),
+                      faces={"FV": {f: (faces["FV"][f][0], CarlaImages(old.rgb, old.depth, old.semantic),
+                                        faces["FV"][f][2]) for f in SMALL.faces}},
+                      views=views, lidar=np.zeros((0, 4), np.float32), semantic_lidar=np.zeros(0, SEMANTIC_LIDAR_DTYPE),
+                      radar=np.zeros(0, RADAR_DTYPE), imu=imu_to_dict(fake_imu), gnss=gnss_to_dict(fake_gnss))
+    back = CaptureReader(out)
+    assert back.frames == [0, 1] and back.meta["carla_semantic_tags"] == "0.9.10" and back.meta["instance_ids"] is False
+    assert back.meta["town"] == "T" and back.sensors()["gnss"]["geo_reference"]["longitude"] == 2.0
+    img = back.face(1, "FV", "left")
+    np.testing.assert_array_equal(img.semantic, decode_semantic(old.semantic))
+    assert not img.actor_id.any()
+    assert back.sensors()["bev"]["carla_camera"]["altitude_m"] == 500.0
+
+
+def test_front_height_map_from_depth_matches_the_scene(embedded):
+    root, rig = embedded
+    reader = CaptureReader(root)
+    ego = reader.ego(0)["transform"]
+    depth = reader.view(0, "front").depth_m
+    mounts = sensor_mounts(reader.rig(), SMALL)
+    got = height_from_depth(depth, front_camera(SMALL), mounts.front_camera_to_vehicle, ego["location"], ego["rotation"])
+    np.testing.assert_allclose(got, reader.height(0, "front"), atol=CARLA_HEIGHT_FROM_DEPTH_M)
+    with pytest.raises(CarlaCaptureError, match="does not match"):
+        height_from_depth(depth[:-1], front_camera(SMALL), mounts.front_camera_to_vehicle, ego["location"], ego["rotation"])
+
+
+def test_frame_assembly_rejects_bad_inputs(embedded, tmp_path):
+    root, rig = embedded
+    reader, fake_actors, (snap_prev, snap), ego = _fake_world(root, 0)
+    with pytest.raises(CarlaCaptureError, match="actor 999"):
+        carla_actor_records(fake_actors, snap_prev, snap, ego_id=999, tag_table="0.9.10")
+    records = carla_actor_records(fake_actors, snap_prev, snap, ego_id=ego["id"], tag_table="0.9.14")
+    assert records[0].category == "ego" and [r.id for r in records[1:]] == sorted(r.id for r in records[1:])
+    with pytest.raises(CarlaCaptureError, match="first actor"):
+        carla_street_frame(0, 1.0, records[1:], carla_ego_motion(snap.find(ego["id"])))
+    frame = carla_street_frame(0, 1.0, records, carla_ego_motion(snap.find(ego["id"])))
+    img = np.zeros((4, 4, 4), np.uint8)
+    ok = CarlaImages(img, img, img)
+    write_capture_header(tmp_path, rig, SMALL, sensor_mounts(rig, SMALL), seed=0, source="carla")
+    with pytest.raises(CarlaCaptureError, match="FV/front: depth_curr"):
+        write_carla_frame(tmp_path, frame, faces={"FV": {"front": (ok, CarlaImages(img, img[:3], img),
+                                                                   np.zeros(0, DVS_EVENT_DTYPE))}},
+                          views={}, lidar=np.zeros((0, 4)), semantic_lidar=np.zeros(0, SEMANTIC_LIDAR_DTYPE),
+                          radar=np.zeros(0, RADAR_DTYPE), imu={}, gnss={})
+    with pytest.raises(CarlaCaptureError, match="DVS_EVENT_DTYPE"):
+        write_carla_frame(tmp_path, frame, faces={"FV": {"front": (ok, ok, np.zeros(3))}}, views={},
+                          lidar=np.zeros((0, 4)), semantic_lidar=np.zeros(0, SEMANTIC_LIDAR_DTYPE),
+                          radar=np.zeros(0, RADAR_DTYPE), imu={}, gnss={})
+    assert json.loads((tmp_path / "capture.json").read_text())["frames"] == []  # nothing listed
