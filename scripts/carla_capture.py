@@ -1,0 +1,391 @@
+"""Capture CARLA (0.9.10 - 0.9.16) into jaxfish's capture layout (``docs/capture_layout.md``).
+
+Needs a running CARLA server and the matching client package (``pip install 'jaxfish[carla]'``, or
+``pip install carla==<server version>``). For every weather preset it writes one capture directory
+``OUT/<Preset>/`` that ``jaxfish build`` turns into a SynWoodScape-style dataset:
+
+    uv run python scripts/carla_capture.py --town Town10HD --frames 100 --weather ClearNoon --out captures/
+
+The ego vehicle and traffic drive on the traffic manager's autopilot, pedestrians walk with AI
+controllers; the world runs in synchronous mode at 10 FPS (``fixed_delta_seconds = 0.1``). Every
+fisheye camera of the calibration is rendered as five 90-degree cube faces (RGB, depth, semantic,
+0.9.14+ instance and DVS each), with one fixed exposure on every face. Frame k holds the ticks
+k (t-1) and k+1 (t). Everything spawned is destroyed, and the world's settings restored, on exit.
+Options: ``--help``; details: ``docs/carla_capture.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import queue
+import random
+import sys
+import time
+from pathlib import Path
+
+from jaxfish import default_rig, load_rig
+from jaxfish.io import (
+    CarlaCaptureError,
+    CarlaExposure,
+    CarlaImages,
+    bev_pinhole,
+    capture_sensor_specs,
+    carla_actor_records,
+    carla_ego_motion,
+    carla_geo_reference,
+    carla_semantic_tags,
+    carla_street_frame,
+    carla_transform_tuple,
+    decode_depth,
+    dvs_to_events,
+    finish_carla_header,
+    gnss_to_dict,
+    height_from_depth,
+    image_to_bgra,
+    import_carla,
+    imu_to_dict,
+    lidar_to_points,
+    parse_carla_version,
+    radar_to_records,
+    rear_axle_origin,
+    rig_on_actor,
+    semantic_lidar_to_records,
+    sensor_carla_mounts,
+    set_blueprint_attributes,
+    validate_weather,
+    with_bev_altitude,
+    write_capture_header,
+    write_carla_frame,
+)
+from jaxfish.scene import CaptureConfig, front_camera, sensor_mounts
+
+DT_S = 0.1  # 10 FPS, SynWoodScape's rate
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line (see ``--help``)."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--host", default="127.0.0.1", help="CARLA server host")
+    p.add_argument("--port", type=int, default=2000, help="CARLA server RPC port")
+    p.add_argument("--tm-port", type=int, default=8000, help="traffic manager port")
+    p.add_argument("--timeout", type=float, default=60.0, help="client timeout and per-sensor wait (s)")
+    p.add_argument("--town", default=None, help="map to load (e.g. Town10HD); default: keep the loaded map")
+    p.add_argument("--frames", type=int, default=10, help="frames per weather preset (each frame = 2 ticks: t-1, t)")
+    p.add_argument("--warmup", type=int, default=30, help="ticks to let traffic start before the first frame")
+    p.add_argument("--weather", action="append", default=None,
+                   help="weather preset (repeatable), a carla.WeatherParameters name, e.g. ClearNoon; default ClearNoon")
+    p.add_argument("--calibration", type=Path, default=None,
+                   help="directory of WoodScape/SynWoodScape calibration JSONs (FV, MVL, MVR, RV); default: jaxfish's default rig")
+    p.add_argument("--vehicle-origin", default="auto",
+                   help="where the calibration's vehicle origin is in the ego actor frame: 'auto' (rear axle on the "
+                        "ground for WoodScape-flavour files, the actor origin for SynWoodScape ones), 'actor', or 'X,Y,Z' "
+                        "metres in CARLA axes")
+    p.add_argument("--face-size", type=int, default=768, help="cube face side S in pixels (fov 90)")
+    p.add_argument("--bev-size", type=int, default=1024, help="BEV image side in pixels")
+    p.add_argument("--bev-metres-per-pixel", type=float, default=0.04, help="BEV ground resolution")
+    p.add_argument("--bev-altitude", type=float, default=500.0, help="height of the BEV pinhole above the ego (m)")
+    p.add_argument("--front-size", type=int, nargs=2, default=(1632, 1224), metavar=("W", "H"), help="front camera size")
+    p.add_argument("--vehicles", type=int, default=50, help="traffic vehicles on autopilot")
+    p.add_argument("--walkers", type=int, default=50, help="pedestrians with AI controllers")
+    p.add_argument("--ego-blueprint", default="vehicle.lincoln.mkz_2017", help="ego vehicle blueprint id")
+    p.add_argument("--seed", type=int, default=0, help="seed of spawn points, blueprints, traffic manager")
+    p.add_argument("--shutter-speed", type=float, default=200.0, help="fixed exposure: shutter speed (1/s)")
+    p.add_argument("--iso", type=float, default=100.0, help="fixed exposure: ISO")
+    p.add_argument("--fstop", type=float, default=1.4, help="fixed exposure: f-number")
+    p.add_argument("--exposure-compensation", type=float, default=0.0, help="fixed exposure: compensation (EV)")
+    p.add_argument("--out", type=Path, required=True, help="output directory (one capture per weather preset)")
+    args = p.parse_args(argv)
+    if args.frames <= 0 or args.face_size <= 0 or args.vehicles < 0 or args.walkers < 0 or args.warmup < 1:
+        p.error("--frames, --face-size, --warmup must be positive; --vehicles, --walkers non-negative")
+    return args
+
+
+class Session:
+    """One CARLA session: world settings, the spawned actors and sensors, and per-tick collection."""
+
+    def __init__(self, carla, client, args):
+        self.carla, self.client, self.args = carla, client, args
+        self.world = client.get_world()
+        self.original_settings = self.world.get_settings()
+        self.tm = None
+        self.actor_ids: list[int] = []  # vehicles and walkers
+        self.controllers: list = []
+        self.sensors: dict[tuple, object] = {}
+        self.queues: dict[tuple, queue.Queue] = {}
+        self.ego = None
+
+    # ------------------------------------------------------------------ setup
+    def synchronous(self) -> None:
+        settings = self.world.get_settings()
+        settings.synchronous_mode = True
+        settings.fixed_delta_seconds = DT_S
+        self.world.apply_settings(settings)
+        self.tm = self.client.get_trafficmanager(self.args.tm_port)
+        self.tm.set_synchronous_mode(True)
+        if hasattr(self.tm, "set_random_device_seed"):
+            self.tm.set_random_device_seed(self.args.seed)
+
+    def spawn_ego(self, rng: random.Random):
+        lib = self.world.get_blueprint_library()
+        found = lib.filter(self.args.ego_blueprint)
+        if not found:
+            raise CarlaCaptureError(f"--ego-blueprint {self.args.ego_blueprint!r}: no such blueprint on this server")
+        bp = found[0]
+        if bp.has_attribute("role_name"):
+            bp.set_attribute("role_name", "hero")
+        points = self.world.get_map().get_spawn_points()
+        rng.shuffle(points)
+        for sp in points:
+            ego = self.world.try_spawn_actor(bp, sp)
+            if ego is not None:
+                self.ego = ego
+                self.actor_ids.append(ego.id)
+                ego.set_autopilot(True, self.args.tm_port)
+                return points
+        raise CarlaCaptureError("no free spawn point for the ego vehicle")
+
+    def spawn_traffic(self, rng: random.Random, points) -> None:
+        carla = self.carla
+        lib = self.world.get_blueprint_library()
+        bps = [b for b in lib.filter("vehicle.*") if b.id != self.args.ego_blueprint]
+        batch = []
+        for sp in points[1: 1 + self.args.vehicles]:
+            bp = rng.choice(bps)
+            if bp.has_attribute("role_name"):
+                bp.set_attribute("role_name", "autopilot")
+            batch.append(carla.command.SpawnActor(bp, sp).then(
+                carla.command.SetAutopilot(carla.command.FutureActor, True, self.args.tm_port)))
+        for r in self.client.apply_batch_sync(batch, True):
+            if not r.error:
+                self.actor_ids.append(r.actor_id)
+        walker_bps = list(lib.filter("walker.pedestrian.*"))
+        batch, speeds = [], []
+        for _ in range(self.args.walkers):
+            loc = self.world.get_random_location_from_navigation()
+            if loc is None:
+                continue
+            bp = rng.choice(walker_bps)
+            if bp.has_attribute("is_invincible"):
+                bp.set_attribute("is_invincible", "false")
+            speed = bp.get_attribute("speed").recommended_values[1] if bp.has_attribute("speed") else "1.4"
+            batch.append(carla.command.SpawnActor(bp, carla.Transform(loc)))
+            speeds.append(float(speed))
+        walkers = []
+        for r, speed in zip(self.client.apply_batch_sync(batch, True), speeds, strict=True):
+            if not r.error:
+                walkers.append((r.actor_id, speed))
+                self.actor_ids.append(r.actor_id)
+        ctrl_bp = lib.find("controller.ai.walker")
+        results = self.client.apply_batch_sync(
+            [carla.command.SpawnActor(ctrl_bp, carla.Transform(), wid) for wid, _ in walkers], True)
+        self.world.tick()  # controllers need one tick before they start
+        for r, (_, speed) in zip(results, walkers, strict=True):
+            if r.error:
+                continue
+            ctrl = self.world.get_actor(r.actor_id)
+            ctrl.start()
+            ctrl.go_to_location(self.world.get_random_location_from_navigation())
+            ctrl.set_max_speed(speed)
+            self.controllers.append(ctrl)
+
+    def attach_sensors(self, specs) -> tuple[list[tuple], list[tuple]]:
+        lib = self.world.get_blueprint_library()
+        missing_attrs: dict[str, set] = {}
+        for spec in specs:
+            bp = lib.find(spec.blueprint)
+            missing = set_blueprint_attributes(bp, spec.attributes)
+            if missing:
+                missing_attrs.setdefault(spec.blueprint, set()).update(missing)
+            sensor = self.world.spawn_actor(bp, spec.mount.to_carla(self.carla), attach_to=self.ego)
+            q: queue.Queue = queue.Queue()
+            sensor.listen(q.put)
+            self.sensors[spec.key] = sensor
+            self.queues[spec.key] = q
+        for bp_id, names in sorted(missing_attrs.items()):
+            print(f"note: {bp_id} has no attribute(s) {', '.join(sorted(names))} in this CARLA release")
+        dvs = [k for k in self.sensors if k[-1] == "dvs"]
+        return [k for k in self.sensors if k[-1] != "dvs"], dvs
+
+    # ------------------------------------------------------------------ ticks
+    def _get(self, key: tuple, frame: int, timeout: float):
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            try:
+                data = self.queues[key].get(timeout=remaining)
+            except queue.Empty:
+                return None
+            if data.frame == frame:
+                return data
+            if data.frame > frame:  # should not happen in synchronous mode
+                raise CarlaCaptureError(f"sensor {'/'.join(key)}: got frame {data.frame} while waiting for {frame}")
+
+    def tick(self, required: list[tuple], dvs: list[tuple]) -> dict:
+        frame = self.world.tick()
+        snapshot = self.world.get_snapshot()
+        data: dict = {"frame": frame, "snapshot": snapshot}
+        for key in required:
+            item = self._get(key, frame, self.args.timeout)
+            if item is None:
+                raise CarlaCaptureError(f"sensor {'/'.join(key)}: no data for frame {frame} within {self.args.timeout} s")
+            data[key] = convert(key, item)
+        for key in dvs:  # the DVS sends nothing when no pixel changed
+            item = self._get(key, frame, 1.0)
+            data[key] = dvs_to_events(item, "/".join(key)) if item is not None else dvs_to_events(b"")
+        return data
+
+    # ------------------------------------------------------------------ teardown
+    def destroy(self) -> None:
+        carla = self.carla
+        for sensor in self.sensors.values():
+            try:
+                sensor.stop()
+            except RuntimeError:
+                pass
+        for ctrl in self.controllers:
+            try:
+                ctrl.stop()
+            except RuntimeError:
+                pass
+        ids = [s.id for s in self.sensors.values()] + [c.id for c in self.controllers] + self.actor_ids
+        if ids:
+            self.client.apply_batch_sync([carla.command.DestroyActor(i) for i in ids], False)
+        self.sensors.clear()
+        self.controllers.clear()
+        self.actor_ids.clear()
+        if self.tm is not None:
+            self.tm.set_synchronous_mode(False)
+        self.world.apply_settings(self.original_settings)
+
+
+def convert(key: tuple, item):
+    """One sensor reading -> the capture's array (see `jaxfish.io` conversions)."""
+    what = "/".join(key)
+    kind = key[-1]
+    if kind in ("rgb", "depth", "semantic", "instance"):
+        return image_to_bgra(item, what)
+    return {"lidar": lidar_to_points, "semantic_lidar": semantic_lidar_to_records, "radar": radar_to_records,
+            "imu": lambda m, _w: imu_to_dict(m), "gnss": lambda m, _w: gnss_to_dict(m)}[kind](item, what)
+
+
+def images(tick: dict, prefix: tuple) -> CarlaImages:
+    """The RGB/depth/semantic(/instance) BGRA arrays of one camera in a tick."""
+    return CarlaImages(tick[prefix + ("rgb",)], tick[prefix + ("depth",)], tick[prefix + ("semantic",)],
+                       tick.get(prefix + ("instance",)))
+
+
+def vehicle_origin(args, rig, ego) -> tuple[float, float, float]:
+    """Where the calibrations' vehicle origin is in the ego actor frame (``--vehicle-origin``)."""
+    if args.vehicle_origin == "actor":
+        return (0.0, 0.0, 0.0)
+    if args.vehicle_origin != "auto":
+        try:
+            x, y, z = (float(v) for v in args.vehicle_origin.split(","))
+        except ValueError as e:
+            raise CarlaCaptureError(f"--vehicle-origin {args.vehicle_origin!r}: expected auto, actor or X,Y,Z") from e
+        return (x, y, z)
+    if all(c.flavor == "synwoodscape" for c in rig.values()):
+        return (0.0, 0.0, 0.0)
+    wheels = [w.position for w in ego.get_physics_control().wheels]
+    return rear_axle_origin(wheels, carla_transform_tuple(ego.get_transform()))
+
+
+def capture_weather(carla, client, args, weather: str, rig_file) -> Path:
+    """Spawn everything, capture ``args.frames`` frames under ``weather`` into ``OUT/weather``."""
+    version = client.get_server_version()
+    tags = carla_semantic_tags(version)
+    config = CaptureConfig(face_size=args.face_size, bev_size=args.bev_size, bev_metres_per_pixel=args.bev_metres_per_pixel,
+                           front_width=args.front_size[0], front_height=args.front_size[1])
+    exposure = CarlaExposure(args.shutter_speed, args.iso, args.fstop, args.exposure_compensation)
+    root = args.out / weather
+    session = Session(carla, client, args)
+    rng = random.Random(args.seed)
+    try:
+        session.synchronous()
+        session.world.set_weather(getattr(carla.WeatherParameters, weather))
+        points = session.spawn_ego(rng)
+        session.world.tick()  # the ego's physics (wheel positions) exist after a tick
+        rig = rig_on_actor(rig_file, vehicle_origin(args, rig_file, session.ego))
+        session.spawn_traffic(rng, points)
+        mounts = sensor_mounts(rig, config)
+        specs = capture_sensor_specs(rig, config, mounts, carla_version=version, bev_altitude_m=args.bev_altitude,
+                                     exposure=exposure)
+        raised = with_bev_altitude(mounts, bev_altitude_m=args.bev_altitude)
+        write_capture_header(root, rig, config, raised, seed=args.seed, source="carla", dt_s=DT_S)
+        finish_carla_header(root, carla_version=version, mounts=sensor_carla_mounts(raised),
+                            bev_altitude_m=args.bev_altitude, config=config,
+                            geo=carla_geo_reference(session.world.get_map(), carla),
+                            extra={"town": session.world.get_map().name, "weather": weather})
+        required, dvs = session.attach_sensors(specs)
+        print(f"[{weather}] {len(specs)} sensors on the ego, {len(session.actor_ids) - 1} other actors; "
+              f"warming up {args.warmup} ticks")
+        for _ in range(args.warmup - 1):
+            session.tick(required, dvs)
+        prev = session.tick(required, dvs)
+        views = {"bev": (bev_pinhole(config, args.bev_altitude), raised.bev_camera_to_vehicle),
+                 "front": (front_camera(config), raised.front_camera_to_vehicle)}
+        start = time.monotonic()
+        for k in range(args.frames):
+            curr = session.tick(required, dvs)
+            write_frame_from_ticks(root, k, prev, curr, session, rig, config, views, tags)
+            prev = curr
+            rate = (k + 1) / max(time.monotonic() - start, 1e-9)
+            print(f"[{weather}] frame {k + 1}/{args.frames} written ({rate:.2f} frames/s)", flush=True)
+    finally:
+        session.destroy()
+    return root
+
+
+def write_frame_from_ticks(root, k, prev, curr, session, rig, config, views, tags) -> None:
+    """Assemble frame ``k`` from the ticks t-1 (``prev``) and t (``curr``) and write it."""
+    snap_p, snap_c = prev["snapshot"], curr["snapshot"]
+    ego_id = session.ego.id
+    actors = list(session.world.get_actors().filter("vehicle.*")) + list(session.world.get_actors().filter("walker.pedestrian.*"))
+    records = carla_actor_records(actors, snap_p, snap_c, ego_id=ego_id, tag_table=tags)
+    frame = carla_street_frame(k, snap_c.timestamp.elapsed_seconds, records, carla_ego_motion(snap_c.find(ego_id)), dt_s=DT_S,
+                         seed=session.args.seed)
+    faces = {cam: {f: (images(prev, ("camera", cam, f)), images(curr, ("camera", cam, f)), curr[("camera", cam, f, "dvs")])
+                   for f in config.faces} for cam in rig}
+    ego = records[0]
+    out_views = {}
+    for name, (camera, pose) in views.items():
+        c = images(curr, ("view", name))
+        height = height_from_depth(decode_depth(c.depth), camera, pose, ego.location, ego.rotation)
+        out_views[name] = (images(prev, ("view", name)), c, height)
+    write_carla_frame(root, frame, faces=faces, views=out_views, lidar=curr[("lidar",)],
+                      semantic_lidar=curr[("semantic_lidar",)], radar=curr[("radar",)], imu=curr[("imu",)],
+                      gnss=curr[("gnss",)])
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the capture; 0 on success, 2 on a bad input or CARLA error (with the reason)."""
+    args = parse_args(argv)
+    try:
+        weathers = validate_weather(args.weather or ["ClearNoon"])
+        rig = load_rig(args.calibration) if args.calibration else default_rig()
+        carla = import_carla()
+        validate_weather(weathers, carla=carla)
+        client = carla.Client(args.host, args.port)
+        client.set_timeout(args.timeout)
+        server, client_version = client.get_server_version(), client.get_client_version()
+        parse_carla_version(server)
+        if server.split("-")[0] != client_version.split("-")[0]:
+            print(f"warning: carla client {client_version} and server {server} differ; install carla=={server}")
+        if args.town:
+            client.load_world(args.town)
+        for weather in weathers:
+            out = capture_weather(carla, client, args, weather, rig)
+            print(f"[{weather}] capture written to {out}")
+    except CarlaCaptureError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except RuntimeError as e:  # CARLA's client raises RuntimeError (time-outs, lost connection)
+        print(f"error: CARLA: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
