@@ -54,3 +54,5 @@ BEV_FUSED_HEIGHT_M = 1e-3  # fused height of a box top vs its known height (1 mm
 # CARLA capture: height map from a view's 24-bit planar depth vs the embedded scene's exact world z.
 CARLA_HEIGHT_FROM_DEPTH_M = 2e-3
 BEV_EAGER_JIT_CELL_FRACTION = 2e-3  # fused cells that may differ between eager / jit / vmap (float32 rounding at cell edges)
+BEV_GRID_M = 1e-4  # BEV pixel <-> vehicle ground point vs the documented formula (float32, 10 m)
+BEV_FLOW_UNIFORM_PX = 1e-3  # top-view flow under pure ego translation vs the uniform closed form (float32)

@@ -76,9 +76,14 @@ def ipm_semantics(
         raise ValueError(f"ipm_semantics: valid must be {sem.shape}, got {ok_valid.shape}")
     if bev_camera_to_vehicle.rotation_matrix.shape != (3, 3):
         raise ValueError("ipm_semantics: bev_camera_to_vehicle must be one pose")
+    return _ipm(cam, poses, sem.astype(jnp.int32), ok_valid, bev_camera, bev_camera_to_vehicle)
+
+
+@jax.jit
+def _ipm(cam, poses, sem, ok_valid, bev_camera, bev_camera_to_vehicle):
+    # compiled once per shape: eager callers run one kernel instead of dispatching op by op
     ground = bev_ground_points(bev_camera, bev_camera_to_vehicle)
-    to_cam = poses.inverse()
-    labels, theta = jax.vmap(_sample_one, in_axes=(0, 0, 0, 0, None))(cam, to_cam, sem.astype(jnp.int32), ok_valid, ground)
+    labels, theta = jax.vmap(_sample_one, in_axes=(0, 0, 0, 0, None))(cam, poses.inverse(), sem, ok_valid, ground)
     best = jnp.argmin(theta, axis=0)
     th = jnp.min(theta, axis=0)
     lab = jnp.take_along_axis(labels, best[None], axis=0)[0]

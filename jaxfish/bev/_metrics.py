@@ -53,8 +53,8 @@ def semantic_iou(
     inter = jnp.diagonal(conf[:, :c])
     union = conf.sum(axis=1) + conf[:, :c].sum(axis=0) - inter
     present = union > 0
-    iou = jnp.where(present, inter / jnp.maximum(union, 1), 0.0).astype(jnp.float32)
+    iou = jnp.where(present, inter.astype(jnp.float32) / jnp.maximum(union, 1).astype(jnp.float32), 0.0)
     n = present.sum()
-    mean = jnp.where(n > 0, jnp.where(present, iou, 0.0).sum() / jnp.maximum(n, 1), jnp.nan).astype(jnp.float32)
+    mean = jnp.where(n > 0, jnp.where(present, iou, 0.0).sum() / jnp.maximum(n, 1).astype(jnp.float32), jnp.nan)
     return IouScores(intersection=inter.astype(jnp.int32), union=union.astype(jnp.int32), iou=iou, present=present,
                      mean_iou=mean)
