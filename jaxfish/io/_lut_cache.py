@@ -26,6 +26,7 @@ LUT_FORMAT_VERSION = 1
 """Version of the ``.npz`` LUT layout, part of every cache key; bumped when the layout or the LUT
 semantics change, so outdated cache files are rebuilt."""
 _ARRAYS = ("face", "uv", "valid", "z_to_range", "tap_index", "tap_frac", "nearest_index", "ring_index", "ring_frac", "ring_valid")
+_OPTIONAL = ("border_pixel", "border_fits")
 _STATIC = ("num_faces", "source_width", "source_height", "pad", "supersample")
 
 
@@ -61,6 +62,7 @@ def save_lut(lut: Lut, path: str | os.PathLike) -> Path:
     """Write a (possibly camera-batched) LUT to ``path`` (``.npz``), atomically."""
     path = Path(path)
     arrays = {name: np.asarray(getattr(lut, name)) for name in _ARRAYS}
+    arrays.update({name: np.asarray(getattr(lut, name)) for name in _OPTIONAL if getattr(lut, name) is not None})
     meta = {name: int(getattr(lut, name)) for name in _STATIC}
     meta["format"] = LUT_FORMAT_VERSION
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -79,6 +81,7 @@ def load_lut(path: str | os.PathLike) -> Lut:
         with np.load(path) as data:
             meta = json.loads(bytes(data["meta"]).decode())
             arrays = {name: jnp.asarray(data[name]) for name in _ARRAYS}
+            arrays.update({name: jnp.asarray(data[name]) for name in _OPTIONAL if name in data.files})
     except (OSError, ValueError, KeyError) as e:
         raise JaxfishError(f"{path}: not a readable jaxfish LUT ({e})") from e
     if meta.get("format") != LUT_FORMAT_VERSION:

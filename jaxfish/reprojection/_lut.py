@@ -58,7 +58,11 @@ class Lut(eqx.Module):
       faces ``(F, Hs, Ws)``;
     - `ring_index` / `ring_frac` / `ring_valid` ``(F, 4 (Ws + 1))`` (cube sources only, else empty):
       where each face's one-pixel border ring is read from its neighbouring faces (see
-      `pad_faces`).
+      `pad_faces`);
+    - `border_pixel` ``(K,)`` int32 and `border_fits` ``()`` bool (cube sources; optional): the flat
+      indices of the target pixels whose bilinear footprint reaches a face's border ring (padded
+      with ``H * W``; `K` a static capacity) and whether they all fit. `resample_bilinear` reads
+      every other pixel straight from the unpadded faces. ``None`` (hand-built LUTs): computed per call.
 
     Static fields: `num_faces`, `source_width`, `source_height`, `pad` (1 for a cube rig: the
     bilinear kernel reads faces padded with a one-pixel border from their neighbours; 0 for a
@@ -82,6 +86,8 @@ class Lut(eqx.Module):
     source_height: int = eqx.field(static=True)
     pad: int = eqx.field(static=True)
     supersample: int = eqx.field(static=True)
+    border_pixel: Int[Array, "*cams K"] | None = None
+    border_fits: Bool[Array, "*cams"] | None = None
 
     @property
     def target_shape(self) -> tuple[int, int]:
@@ -268,7 +274,36 @@ def _assemble(face, uv, valid, z_to_range, *, rig: CubeRig | None, width: int, h
         source_height=sh,
         pad=pad,
         supersample=n,
+        **(border_pixels(tap_index, valid, width=sw, num_faces=num_faces) if pad else {}),
     )
+
+
+def border_capacity(height: int, width: int, n: int, num_faces: int, face_size: int) -> int:
+    """Static capacity of `Lut.border_pixel`: four one-pixel bands per face side, four target
+    samples per face pixel (faces much coarser than the target may exceed it: `resample_bilinear`
+    then pads the faces instead)."""
+    return int(min(height * width, max(1024, 16 * num_faces * (face_size + 2) * n)))
+
+
+def split_padded_index(index, size: int):
+    """Face, x and y (padded-face coordinates in ``[0, S + 1]``) of flat indices into faces padded
+    by one pixel (`Lut.tap_index` of a cube rig)."""
+    sw = size + 2
+    face = index // (sw * sw)
+    rem = index - face * (sw * sw)
+    y = rem // sw
+    return face, rem - y * sw, y
+
+
+def border_pixels(tap_index, valid, *, width: int, num_faces: int) -> dict:
+    """``{"border_pixel", "border_fits"}`` of a cube LUT (see `Lut`)."""
+    h, w, n = valid.shape[-3:]
+    _, xp, yp = split_padded_index(tap_index, width)
+    inner = (xp >= 1) & (xp <= width - 1) & (yp >= 1) & (yp <= width - 1)
+    border = jnp.any(valid & ~inner, axis=-1).reshape(-1)
+    cap = border_capacity(h, w, n, num_faces, width)
+    pix = jnp.nonzero(border, size=cap, fill_value=h * w)[0].astype(jnp.int32)
+    return {"border_pixel": pix, "border_fits": jnp.sum(border) <= cap}
 
 
 def _ring_lut(rig: CubeRig, dtype):

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Shaped
 
-from ._lut import Lut, centre_sample, ring_positions
+from ._lut import Lut, border_pixels, centre_sample, ring_positions, split_padded_index
 
 DEPTH_AGREEMENT_REL_TOL = 0.05
 """Default ``rel_tol`` of `resample_depth`: inverse depth is interpolated only when the four taps
@@ -91,6 +91,25 @@ def _ring_own_edge(size: int) -> np.ndarray:
     return (y * size + x).astype(np.int32)
 
 
+def _ring_values(flat: Array, lut: Lut, dtype) -> Array:
+    """Values ``(F * R, C)`` of the one-pixel ring around every face of one frame ``flat``
+    ``(F * S * S, C)`` (unpadded faces), in `ring_positions` order, in ``dtype``."""
+    f, s = lut.num_faces, lut.source_width
+    wdt = _work_dtype(flat, lut)
+    idx = lut.ring_index  # (F, R), into the unpadded faces
+    fx = lut.ring_frac[..., 0:1].astype(wdt)
+    fy = lut.ring_frac[..., 1:2].astype(wdt)
+    g = lambda i: flat.at[i].get(mode="promise_in_bounds").astype(wdt)  # noqa: E731
+    t00, t01, t10, t11 = g(idx), g(idx + 1), g(idx + s), g(idx + s + 1)
+    top = t00 + (t01 - t00) * fx
+    bot = t10 + (t11 - t10) * fx
+    val = top + (bot - top) * fy
+    own = jnp.asarray(_ring_own_edge(s)) + (jnp.arange(f, dtype=jnp.int32) * (s * s))[:, None]
+    own_val = flat.at[own].get(mode="promise_in_bounds")
+    out = jnp.where(lut.ring_valid[..., None], _to_output(val, flat.dtype), own_val).astype(dtype)
+    return out.reshape((-1, flat.shape[-1]))
+
+
 def pad_faces(
     faces: Shaped[Array, "*batch F S S C"], lut: Lut
 ) -> Shaped[Array, "*batch F S+2 S+2 C"]:
@@ -107,22 +126,7 @@ def pad_faces(
     f, s, c = lut.num_faces, lut.source_width, x.shape[-1]
     xb = x.reshape((-1, f, s, s, c))
     flat = xb.reshape((xb.shape[0], f * s * s, c))
-    wdt = _work_dtype(x, lut)
-    idx = lut.ring_index  # (F, R)
-    fx = lut.ring_frac[..., 0:1].astype(wdt)
-    fy = lut.ring_frac[..., 1:2].astype(wdt)
-
-    def one(fl):
-        g = lambda i: fl.at[i].get(mode="promise_in_bounds").astype(wdt)  # noqa: E731
-        t00, t01, t10, t11 = g(idx), g(idx + 1), g(idx + s), g(idx + s + 1)
-        top = t00 + (t01 - t00) * fx
-        bot = t10 + (t11 - t10) * fx
-        val = top + (bot - top) * fy
-        own = jnp.asarray(_ring_own_edge(s)) + (jnp.arange(f, dtype=jnp.int32) * (s * s))[:, None]
-        own_val = fl.at[own].get(mode="promise_in_bounds")
-        return jnp.where(lut.ring_valid[..., None], _to_output(val, x.dtype), own_val)
-
-    ring_vals = jax.vmap(one)(flat)  # (B, F, R, C)
+    ring_vals = jax.vmap(lambda fl: _ring_values(fl, lut, x.dtype))(flat)  # (B, F * R, C)
     pos = ring_positions(s)
     r = pos.shape[0]
     fi = jnp.asarray(np.repeat(np.arange(f), r))
@@ -136,7 +140,12 @@ def pad_faces(
 def resample_bilinear(
     images: Shaped[Array, "*batch F Hs Ws C"], lut: Lut, *, fill: float = 0
 ) -> tuple[Shaped[Array, "*batch H W C"], Bool[Array, "H W"]]:
-    """Bilinear resampling of images through ``lut`` (see the module rules); dtype preserved."""
+    """Bilinear resampling of images through ``lut`` (see the module rules); dtype preserved.
+
+    For a cube rig the result equals reading `pad_faces` output, without the padded copy: taps
+    inside a face read the faces directly, and the few pixels whose footprint reaches a face's
+    border ring (counted per call; a static capacity, `pad_faces` beyond it) are recomputed from
+    the ring values and written back."""
     x = jnp.asarray(images)
     batch, _ = _split_source(x, lut, "resample_bilinear", channels=True)
     f, c = lut.num_faces, x.shape[-1]
@@ -145,26 +154,81 @@ def resample_bilinear(
     frames = x.reshape((-1,) + lut.source_shape + (c,))
     wdt = _work_dtype(x, lut)
     idx = lut.tap_index
-    fx = lut.tap_frac[..., 0:1].astype(wdt)
-    fy = lut.tap_frac[..., 1:2].astype(wdt)
+    frac = lut.tap_frac.astype(wdt)
     n = lut.valid.shape[-1]
     valid_px = jnp.any(lut.valid, axis=-1)
+    w = None
     if n > 1:
         w = lut.valid.astype(wdt)
         w = w / jnp.maximum(jnp.sum(w, axis=-1, keepdims=True), 1)
 
-    def one(frame):
-        if lut.pad:  # pad each frame inside the loop: one frame's padded copy stays cache-friendly
-            frame = pad_faces(frame, lut)
-        fl = frame.reshape((f * sh * sw, c))
-        g = lambda i: fl.at[i].get(mode="promise_in_bounds").astype(wdt)  # noqa: E731
-        t00, t01, t10, t11 = g(idx), g(idx + 1), g(idx + sw), g(idx + sw + 1)
+    def blend(taps, fr, wt):  # taps (..., N, C), fractions (..., N, 2), weights (..., N) -> (..., C)
+        t00, t01, t10, t11 = taps
+        fx, fy = fr[..., 0:1], fr[..., 1:2]
         top = t00 + (t01 - t00) * fx
         bot = t10 + (t11 - t10) * fx
-        val = top + (bot - top) * fy  # (H, W, N, C)
-        val = val[:, :, 0, :] if n == 1 else jnp.einsum("hwnc,hwn->hwc", val, w)
+        val = top + (bot - top) * fy
+        return val[..., 0, :] if n == 1 else jnp.einsum("...nc,...n->...c", val, wt)
+
+    def finish(val):
         val = jnp.where(valid_px[..., None], val, jnp.asarray(fill, wdt))
         return _to_output(val, x.dtype)
+
+    def padded(frame):
+        fl = pad_faces(frame, lut).reshape((f * sh * sw, c))
+        g = lambda i: fl.at[i].get(mode="promise_in_bounds").astype(wdt)  # noqa: E731
+        return finish(blend((g(idx), g(idx + 1), g(idx + sw), g(idx + sw + 1)), frac, w))
+
+    if not lut.pad:
+
+        def plain(frame):
+            fl = frame.reshape((f * sh * sw, c))
+            g = lambda i: fl.at[i].get(mode="promise_in_bounds").astype(wdt)  # noqa: E731
+            return finish(blend((g(idx), g(idx + 1), g(idx + sw), g(idx + sw + 1)), frac, w))
+
+        out = _over_frames(plain, frames)
+        return out.reshape(batch + out.shape[1:]), valid_px
+
+    # Cube rig: the top-left tap in unpadded coordinates, clamped so all four taps stay in the face.
+    s = lut.source_width
+    face, xp, yp = split_padded_index(idx, s)
+    fi = (face * s + jnp.clip(yp - 1, 0, s - 2)) * s + jnp.clip(xp - 1, 0, s - 2)
+    if lut.border_pixel is None:
+        border = border_pixels(idx, lut.valid, width=s, num_faces=f)
+        pix, fits = border["border_pixel"], border["border_fits"]
+    else:
+        pix, fits = lut.border_pixel, lut.border_fits
+    hw = valid_px.size
+    pix_safe = jnp.minimum(pix, hw - 1)
+    b_idx = idx.reshape((hw, n))[pix_safe]
+    b_frac = frac.reshape((hw, n, 2))[pix_safe]
+    b_w = None if w is None else w.reshape((hw, n))[pix_safe]
+    bf, bx, by = split_padded_index(b_idx, s)
+    r = 4 * (s + 1)
+    b_taps = []
+    for dy, dx in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        tx, ty = bx + dx, by + dy  # padded coordinates of this tap
+        t_in = (tx >= 1) & (tx <= s) & (ty >= 1) & (ty <= s)
+        t_face = (bf * s + jnp.clip(ty - 1, 0, s - 1)) * s + jnp.clip(tx - 1, 0, s - 1)
+        # ring order (`ring_positions`): top (y = 0), right (x = S + 1), bottom (y = S + 1), left (x = 0)
+        ring = jnp.where(ty == 0, tx, jnp.where(tx == s + 1, (s + 1) + ty,
+                                                jnp.where(ty == s + 1, 2 * (s + 1) + (s + 1 - tx), 3 * (s + 1) + (s + 1 - ty))))
+        b_taps.append((t_in, t_face, bf * r + jnp.clip(ring, 0, r - 1)))
+
+    def fast(frame):
+        fl = frame.reshape((-1, c))
+        g = lambda i: fl.at[i].get(mode="promise_in_bounds").astype(wdt)  # noqa: E731
+        out = finish(blend((g(fi), g(fi + 1), g(fi + s), g(fi + s + 1)), frac, w))
+        ring_vals = _ring_values(fl, lut, x.dtype)
+        taps = tuple(jnp.where(t_in[..., None], g(t_face), ring_vals.at[t_ring].get(mode="promise_in_bounds").astype(wdt))
+                     for t_in, t_face, t_ring in b_taps)
+        val = blend(taps, b_frac, b_w)  # (K, C)
+        val = _to_output(jnp.where(valid_px.reshape(-1)[pix_safe][:, None], val, jnp.asarray(fill, wdt)), x.dtype)
+        flat_out = out.reshape((hw, c)).at[pix].set(val, mode="drop")
+        return flat_out.reshape(out.shape)
+
+    def one(frame):
+        return jax.lax.cond(fits, fast, padded, frame)
 
     out = _over_frames(one, frames)
     return out.reshape(batch + out.shape[1:]), valid_px

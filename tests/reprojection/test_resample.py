@@ -258,3 +258,33 @@ def test_supersampling_reduces_aliasing(supersampled, rig256, jit_kernels, tmp_p
     path = tmp_path / "supersampling.png"
     assert cv2.imwrite(str(path), np.clip(figure * 255, 0, 255).astype(np.uint8))
     assert path.stat().st_size > 1000
+
+
+def _bilinear_from_padded_faces(faces, lut):
+    """Reference: bilinear taps read from `pad_faces` output (the padded layout `Lut.tap_index` addresses)."""
+    x = jnp.asarray(faces)
+    c, sw = x.shape[-1], lut.source_width + 2
+    flat = pad_faces(x, lut).reshape((-1, c))
+    idx, fr = lut.tap_index, lut.tap_frac.astype(jnp.float64)
+    g = lambda i: flat[i].astype(jnp.float64)  # noqa: E731
+    t00, t01, t10, t11 = g(idx), g(idx + 1), g(idx + sw), g(idx + sw + 1)
+    top = t00 + (t01 - t00) * fr[..., 0:1]
+    val = (top + (t10 + (t11 - t10) * fr[..., 0:1] - top) * fr[..., 1:2])[:, :, 0]
+    return jnp.where(lut.pixel_valid[..., None], val, 0.0)
+
+
+@pytest.mark.parametrize("face_size", [64, 12])
+def test_bilinear_border_pixels_equal_the_padded_faces(face_size, jit_build_lut, small_fisheye, jit_kernels):
+    """The unpadded fast path (border pixels recomputed from the ring) equals reading padded faces;
+    12-px faces overflow the border capacity and take the padded path; a hand-built LUT without the
+    border list computes it per call."""
+    lut = jit_build_lut(CubeRig(face_size, dtype=jnp.float64), small_fisheye, dtype=jnp.float64)
+    n_border = int(jnp.sum(lut.border_pixel < lut.pixel_valid.size))
+    assert bool(lut.border_fits) == (face_size == 64) and n_border > 0
+    faces = np.random.default_rng(3).uniform(0, 1, (5, face_size, face_size, 2))
+    ref = np.asarray(jax.jit(_bilinear_from_padded_faces)(faces, lut))
+    got, _ = jit_kernels["bilinear"](faces, lut)
+    np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-12)
+    bare = eqx.tree_at(lambda t: (t.border_pixel, t.border_fits), lut, (None, None), is_leaf=lambda v: v is None)
+    got_bare, _ = jit_kernels["bilinear"](faces, bare)
+    np.testing.assert_array_equal(np.asarray(got_bare), np.asarray(got))
