@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-from jaxfish import default_rig, load_rig
+from jaxfish import JaxfishError, default_rig, load_rig
 from jaxfish.io import (
     CarlaCaptureError,
     CarlaExposure,
@@ -57,6 +57,7 @@ from jaxfish.io import (
     write_capture_header,
     write_carla_frame,
 )
+from jaxfish.io._capture import rig_names
 from jaxfish.scene import CaptureConfig, front_camera, sensor_mounts
 
 DT_S = 0.1  # 10 FPS, SynWoodScape's rate
@@ -69,6 +70,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--port", type=int, default=2000, help="CARLA server RPC port")
     p.add_argument("--tm-port", type=int, default=8000, help="traffic manager port")
     p.add_argument("--timeout", type=float, default=60.0, help="client timeout and per-sensor wait (s)")
+    p.add_argument("--dvs-wait", type=float, default=0.2,
+                   help="after the other sensors of a tick, how long to wait for DVS readings (s, all DVS together); "
+                        "a DVS without one had no event")
     p.add_argument("--town", default=None, help="map to load (e.g. Town10HD); default: keep the loaded map")
     p.add_argument("--frames", type=int, default=10, help="frames per weather preset (each frame = 2 ticks: t-1, t)")
     p.add_argument("--warmup", type=int, default=30, help="ticks to let traffic start before the first frame")
@@ -211,10 +215,8 @@ class Session:
         deadline = time.monotonic() + timeout
         while True:
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return None
             try:
-                data = self.queues[key].get(timeout=remaining)
+                data = self.queues[key].get(timeout=remaining) if remaining > 0 else self.queues[key].get_nowait()
             except queue.Empty:
                 return None
             if data.frame == frame:
@@ -231,8 +233,9 @@ class Session:
             if item is None:
                 raise CarlaCaptureError(f"sensor {'/'.join(key)}: no data for frame {frame} within {self.args.timeout} s")
             data[key] = convert(key, item)
-        for key in dvs:  # the DVS sends nothing when no pixel changed
-            item = self._get(key, frame, 1.0)
+        deadline = time.monotonic() + self.args.dvs_wait  # the DVS sends nothing when no pixel changed
+        for key in dvs:
+            item = self._get(key, frame, max(deadline - time.monotonic(), 0.0))
             data[key] = dvs_to_events(item, "/".join(key)) if item is not None else dvs_to_events(b"")
         return data
 
@@ -359,12 +362,20 @@ def write_frame_from_ticks(root, k, prev, curr, session, rig, config, views, tag
                       gnss=curr[("gnss",)])
 
 
+def load_calibrations(directory: Path) -> dict:
+    """Every ``*.json`` calibration of a directory (``FV, MVL, MVR, RV`` first)."""
+    names = rig_names(directory) if directory.is_dir() else ()
+    if not names:
+        raise CarlaCaptureError(f"--calibration {directory}: no calibration JSON files there")
+    return load_rig(directory, names=names)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the capture; 0 on success, 2 on a bad input or CARLA error (with the reason)."""
     args = parse_args(argv)
     try:
         weathers = validate_weather(args.weather or ["ClearNoon"])
-        rig = load_rig(args.calibration) if args.calibration else default_rig()
+        rig = load_calibrations(args.calibration) if args.calibration else default_rig()
         carla = import_carla()
         validate_weather(weathers, carla=carla)
         client = carla.Client(args.host, args.port)
@@ -378,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
         for weather in weathers:
             out = capture_weather(carla, client, args, weather, rig)
             print(f"[{weather}] capture written to {out}")
-    except CarlaCaptureError as e:
+    except (JaxfishError, FileNotFoundError) as e:  # bad options, calibration files, unknown presets
         print(f"error: {e}", file=sys.stderr)
         return 2
     except RuntimeError as e:  # CARLA's client raises RuntimeError (time-outs, lost connection)
