@@ -291,7 +291,11 @@ def vehicle_origin(args, rig, ego) -> tuple[float, float, float]:
         return (x, y, z)
     if all(c.flavor == "synwoodscape" for c in rig.values()):
         return (0.0, 0.0, 0.0)
-    wheels = [w.position for w in ego.get_physics_control().wheels]
+    try:
+        wheels = [w.position for w in ego.get_physics_control().wheels]
+    except AttributeError as e:  # a release without WheelPhysicsControl.position
+        raise CarlaCaptureError("cannot read the ego's wheel positions for --vehicle-origin auto; "
+                                "pass --vehicle-origin X,Y,Z (metres, CARLA axes) or actor") from e
     return rear_axle_origin(wheels, carla_transform_tuple(ego.get_transform()))
 
 

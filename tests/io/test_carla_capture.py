@@ -684,3 +684,20 @@ def test_the_program_on_a_fake_carla(script, tmp_path, monkeypatch, capsys):
     assert "frame 2/2 written" in printed and "lens_flare_intensity" in printed
     assert script.main(argv[:4] + ["--weather", "Sunny"]) == 2
     assert "weather preset 'Sunny' is unknown" in capsys.readouterr().err
+
+
+def test_vehicle_origin_option(script):
+    rig = jf.default_rig()
+    ego = SimpleNamespace(get_physics_control=lambda: SimpleNamespace(wheels=[]),
+                          get_transform=lambda: _transform({"location": (0, 0, 0), "rotation": (0, 0, 0)}))
+    assert script.vehicle_origin(SimpleNamespace(vehicle_origin="actor"), rig, ego) == (0.0, 0.0, 0.0)
+    assert script.vehicle_origin(SimpleNamespace(vehicle_origin="-1.4,0,0.1"), rig, ego) == (-1.4, 0.0, 0.1)
+    syn = {k: type(v)(v.name, v.camera, v.camera_to_vehicle, "synwoodscape") for k, v in rig.items()}
+    assert script.vehicle_origin(SimpleNamespace(vehicle_origin="auto"), syn, ego) == (0.0, 0.0, 0.0)
+    with pytest.raises(CarlaCaptureError, match="X,Y,Z"):
+        script.vehicle_origin(SimpleNamespace(vehicle_origin="1,2"), rig, ego)
+    with pytest.raises(CarlaCaptureError, match="at least 2 wheels"):
+        script.vehicle_origin(SimpleNamespace(vehicle_origin="auto"), rig, ego)
+    no_wheels = SimpleNamespace(get_physics_control=lambda: SimpleNamespace(wheels=[SimpleNamespace(location=1)]))
+    with pytest.raises(CarlaCaptureError, match="wheel positions"):
+        script.vehicle_origin(SimpleNamespace(vehicle_origin="auto"), rig, no_wheels)
