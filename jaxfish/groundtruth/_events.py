@@ -103,23 +103,24 @@ def map_events(
     s = event_map.face_size
     inb = (fi >= 0) & (fi < event_map.num_faces) & (xi >= 0) & (xi < s) & (yi >= 0) & (yi < s)
     src = jnp.where(inb, (fi * s + yi) * s + xi, 0)
-    tg = jnp.where(inb[:, None], event_map.targets[src], -1)  # (E, M)
-    ok = (tg >= 0).reshape(-1)
-    tg = tg.reshape(-1)
+    # Stable sort of the E face events by time (their M fisheye copies share a time and stay in slot
+    # order), then a stable partition moving the valid copies first: the same order as a stable sort
+    # of all E * M copies, at the cost of sorting E keys.
+    by_time = jnp.argsort(tt, stable=True)
+    tg = jnp.where(inb[:, None], event_map.targets[src], -1)[by_time]  # (E, M)
     m = event_map.max_fanout
-    rep = lambda a: jnp.repeat(a, m)  # noqa: E731
-    t_rep = rep(tt)
-    # Stable sort by time with invalid entries last (key = the dtype's maximum): valid events first,
-    # in time order; ties keep the input order.
-    big = jnp.iinfo(t_rep.dtype).max if jnp.issubdtype(t_rep.dtype, jnp.integer) else jnp.inf
-    order = jnp.argsort(jnp.where(ok, t_rep, big), stable=True)
-    tg, ok = tg[order], ok[order]
+    n = tg.size
+    ok_all = (tg >= 0).reshape(-1)
+    order = jnp.nonzero(ok_all, size=n, fill_value=n)[0]  # valid copies first, in order
+    ok = order < n
+    event = jnp.where(ok, order // m, 0)  # index into the time-sorted face events
+    safe = jnp.where(ok, tg.reshape(-1)[jnp.where(ok, order, 0)], 0)
+    src_event = by_time[event]
     w = event_map.width
-    safe = jnp.where(ok, tg, 0)
     return FisheyeEvents(
         x=jnp.where(ok, safe % w, 0).astype(jnp.int32), y=jnp.where(ok, safe // w, 0).astype(jnp.int32),
-        t=jnp.where(ok, t_rep[order], 0), polarity=ok & rep(jnp.asarray(polarity, bool))[order],
-        face=jnp.where(ok, rep(fi)[order], -1), valid=ok, count=jnp.sum(ok.astype(jnp.int32)),
+        t=jnp.where(ok, tt[src_event], 0), polarity=ok & jnp.asarray(polarity, bool)[src_event],
+        face=jnp.where(ok, fi[src_event], -1), valid=ok, count=jnp.sum(ok.astype(jnp.int32)),
     )
 
 

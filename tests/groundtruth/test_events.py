@@ -73,3 +73,19 @@ def test_event_colours():
     np.testing.assert_array_equal(img[0, 1], [255, 255, 255])  # tie: white
     np.testing.assert_array_equal(img[1, 2], [255, 0, 0])  # negative: red
     np.testing.assert_array_equal(img[1, 0], [255, 255, 255])
+
+
+def test_unsorted_input_and_ties_follow_the_stable_rule(sample, event_map):
+    """Against a NumPy reference of the rule: events in stable time order (ties keep input order),
+    each expanded to its fisheye pixels in `EventMap.targets` order."""
+    rng = np.random.default_rng(2)
+    s, n = sample.face_size, 2000
+    fi, x, y = rng.integers(0, sample.lut.num_faces, n), rng.integers(0, s, n), rng.integers(0, s, n)
+    t, p = rng.integers(0, 50, n).astype(np.int64), rng.random(n) < 0.5  # unsorted, many ties
+    out = gt.compact_events(jax.jit(gt.map_events)(event_map, fi, x, y, t, p))
+    targets = np.asarray(event_map.targets)
+    ref = [(int(t[k]), int(tg), int(fi[k]), bool(p[k])) for k in np.argsort(t, kind="stable")
+           for tg in targets[(fi[k] * s + y[k]) * s + x[k]] if tg >= 0]
+    got = list(zip(out["t"].tolist(), (out["y"] * event_map.width + out["x"]).tolist(), out["face"].tolist(),
+                   out["polarity"].tolist(), strict=True))
+    assert got == ref
