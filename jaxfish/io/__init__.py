@@ -4,9 +4,12 @@ from ._atomic import atomic_path as atomic_path
 from ._atomic import atomic_write_bytes as atomic_write_bytes
 from ._atomic import atomic_write_text as atomic_write_text
 from ._bev import BEV_METADATA_ATTRIBUTE as BEV_METADATA_ATTRIBUTE
+from ._bev import bev_from_metadata as bev_from_metadata
 from ._bev import bev_metadata as bev_metadata
 from ._bev import bev_sensor as bev_sensor
 from ._bev import capture_bev_ground_truth as capture_bev_ground_truth
+from ._bev import capture_camera_maps as capture_camera_maps
+from ._bev import load_bev_calibration as load_bev_calibration
 from ._bev import read_bev_metadata as read_bev_metadata
 from ._bev import write_bev_ground_truth as write_bev_ground_truth
 from ._bev import write_png_with_metadata as write_png_with_metadata

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import OpenImageIO as oiio
 
-from .._errors import ImageError
+from .._errors import ImageError, JaxfishError
 from ._atomic import atomic_path
 from ._labels import write_depth_npy
 
@@ -128,6 +128,46 @@ def capture_bev_ground_truth(reader, frame: int, *, rays=None, backward_flow: bo
             "metres_per_pixel": float(cam.metres_per_pixel), "camera_to_vehicle": c2v}
 
 
+def bev_from_metadata(metadata: Mapping[str, Any], where: str = "BEV metadata") -> tuple[Any, Any]:
+    """The BEV camera (`Orthographic`) and ``camera_to_vehicle`` pose described by a `bev_metadata`
+    dict (e.g. a dataset's ``calibration_data/BEV.json`` or a BEV PNG's metadata); ``where`` names
+    the source in errors."""
+    import jax.numpy as jnp
+
+    from ..cameras import Orthographic
+
+    try:
+        cam = Orthographic(float(metadata["metres_per_pixel"]), width=int(metadata["width"]),
+                           height=int(metadata["height"]), cx=float(metadata["cx"]), cy=float(metadata["cy"]),
+                           dtype=jnp.float32)
+    except KeyError as e:
+        raise ImageError(f"{where}: field '{e.args[0]}' missing") from e
+    except (TypeError, ValueError) as e:
+        raise ImageError(f"{where}: malformed BEV scale ({e})") from e
+    if "camera_to_vehicle" not in metadata:
+        raise ImageError(f"{where}: field 'camera_to_vehicle' missing")
+    try:
+        return cam, _pose_from_json(metadata["camera_to_vehicle"], where)
+    except JaxfishError as e:
+        raise ImageError(str(e)) from e
+
+
+def load_bev_calibration(path: str | os.PathLike) -> tuple[Any, Any]:
+    """BEV camera and pose from a ``BEV.json`` (`bev_metadata` as JSON) or a BEV PNG carrying
+    `BEV_METADATA_ATTRIBUTE` (`bev_from_metadata`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: BEV calibration file not found")
+    if path.suffix.lower() == ".json":
+        try:
+            meta = json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise ImageError(f"{path}: invalid JSON ({e})") from e
+    else:
+        meta = read_bev_metadata(path)
+    return bev_from_metadata(meta, str(path))
+
+
 def bev_metadata(camera, camera_to_vehicle, **extra: Any) -> dict[str, Any]:
     """The BEV scale and axes as a JSON-able dict: ``metres_per_pixel``, ``width``, ``height``,
     ``cx``, ``cy``, ``pixel_to_vehicle_xy`` (2 x 3 affine, `jaxfish.bev.bev_pixel_to_vehicle`),
@@ -219,3 +259,124 @@ def write_bev_ground_truth(root: str | os.PathLike, sample: str, result: Mapping
                                        bev_metadata(cam, c2v, content="occupancy: 255 = top surface higher than "
                                                     f"{thr:g} m above the ground, 0 = free", occupancy_min_height_m=thr)))
     return out
+
+
+def _split_classes(world, base, centre, rot, half, cls, margin_m):
+    """Vehicle-like pixels inside a two-wheeler or ego box take the box's class (first box wins)."""
+    import jax.numpy as jnp
+
+    from ..groundtruth import carla_to_synwoodscape  # noqa: F401  (documents where the rule comes from)
+
+    d = world[None] - centre[:, None, None, :]
+    local = jnp.einsum("kji,khwj->khwi", rot, d)
+    inside = jnp.all(jnp.abs(local) <= half[:, None, None, :] + margin_m, axis=-1)  # (K, H, W)
+    hit = jnp.any(inside, axis=0)
+    box_cls = jnp.where(hit, cls[jnp.argmax(inside, axis=0)], -1)
+    vehicle_like = (base == 10) | (base == 21)
+    return jnp.where(vehicle_like & hit, box_cls, base)
+
+
+def _camera_maps_kernel(lut, cam, rays, c2w, rgb, depth, tag, centre, rot, half, cls, margin_m):
+    import jax.numpy as jnp
+
+    from .. import groundtruth as gt
+
+    img = gt.fisheye_images(lut, rgb, depth, tag)
+    pts, ok = gt.pixel_points(cam, img.range_m, dtype=jnp.float32, rays=rays)
+    world = gt.apply_pose(c2w, pts)
+    base = gt.carla_to_synwoodscape(img.tag)
+    sem = _split_classes(world, base, centre, rot, half, cls, margin_m)
+    valid = img.valid & ok
+    return img.range_m, jnp.where(valid, sem, -1), valid
+
+
+def capture_camera_maps(reader, frame: int, *, luts: Mapping[str, Any] | None = None,
+                        rays: Mapping[str, Any] | None = None, margin_m: float = 0.05) -> dict[str, Any]:
+    """Range and class maps of every fisheye camera of a capture frame at t: the inputs of
+    `jaxfish.bev.fuse_cameras` and `jaxfish.bev.ipm_semantics`, lighter than the full
+    `capture_ground_truth` (no flow, instances or events).
+
+    Per camera the cube faces are resampled to the fisheye (`jaxfish.groundtruth.fisheye_images`:
+    range along the ray, CARLA tag); tags become SynWoodScape classes, and vehicle pixels whose 3D
+    point lies in a two-wheeler or the ego box (grown by ``margin_m``) take that box's class (21,
+    24), as in the full ground truth. ``luts`` / ``rays`` (per camera name: `Lut`, `pixel_rays`)
+    are per-calibration constants, built here when absent. Returns ``{"names", "cameras",
+    "cameras_to_vehicle": lists, "range_m", "semantic" (-1 where no ray), "valid": (N, H, W)
+    arrays, "luts", "rays": dicts to pass back for the next frame}``."""
+    import jax.numpy as jnp
+
+    from .. import groundtruth as gt
+    from ..reprojection import CubeRig, build_lut
+    from ._capture import CaptureError
+
+    rig = reader.rig()
+    names = list(reader.cameras)
+    luts = dict(luts or {})
+    rays = dict(rays or {})
+    actors = reader.actors(frame)
+    ego = reader.ego(frame)
+    try:
+        boxes = gt.boxes_from_actors(actors, "t")
+        v2w = gt.vehicle_to_world_from_carla(np.asarray(ego["transform"]["location"], np.float32),
+                                             np.asarray(ego["transform"]["rotation"], np.float32))
+    except (KeyError, TypeError, ValueError) as e:
+        raise CaptureError(f"{reader.root}: frame {frame}: malformed actors.json / ego.json ({e})") from e
+    sel = np.asarray(boxes.active) & np.isin(np.asarray(boxes.class_id), (21, 24))
+    # one never-containing padding box keeps the kernel's box axis non-empty
+    centre = jnp.asarray(np.concatenate([np.asarray(boxes.box_to_world.translation)[sel].reshape(-1, 3),
+                                         np.zeros((1, 3))]), jnp.float32)
+    rot = jnp.asarray(np.concatenate([np.asarray(boxes.box_to_world.rotation_matrix)[sel].reshape(-1, 3, 3),
+                                      np.eye(3)[None]]), jnp.float32)
+    half = jnp.asarray(np.concatenate([np.asarray(boxes.half_extent)[sel].reshape(-1, 3), np.full((1, 3), -1e9)]),
+                       jnp.float32)
+    cls = jnp.asarray(np.concatenate([np.asarray(boxes.class_id)[sel].reshape(-1), [-1]]), jnp.int32)
+    faces = tuple(reader.faces)
+    kernel = _jit_camera_maps()
+    cams, poses, rng, sem, val = [], [], [], [], []
+    for name in names:
+        if name not in rig:
+            raise CaptureError(f"{reader.root}/calibration: camera {name!r} missing")
+        calib = rig[name].astype(jnp.float32)
+        cam = calib.camera.astype(jnp.float32)
+        stack = reader.faces_stack(frame, name, "curr")
+        if name not in luts:
+            size = int(reader.meta.get("face_size", 0)) or stack.depth_m.shape[1]
+            luts[name] = build_lut(CubeRig(size, faces=faces, dtype=jnp.float32), cam)
+        if name not in rays:
+            rays[name] = _jit_rays()(cam)
+        c2w = gt.camera_to_world(v2w, calib.camera_to_vehicle)
+        r, s, v = kernel(luts[name], cam, rays[name], c2w, jnp.asarray(stack.rgb), jnp.asarray(stack.depth_m),
+                         jnp.asarray(stack.semantic), centre, rot, half, cls, float(margin_m))
+        cams.append(cam)
+        poses.append(calib.camera_to_vehicle)
+        rng.append(np.asarray(r))
+        sem.append(np.asarray(s))
+        val.append(np.asarray(v))
+    shapes = {a.shape for a in rng}
+    if len(shapes) != 1:
+        raise CaptureError(f"{reader.root}/calibration: the fisheye cameras differ in image size ({sorted(shapes)})")
+    return {"names": names, "cameras": cams, "cameras_to_vehicle": poses, "range_m": np.stack(rng),
+            "semantic": np.stack(sem).astype(np.int32), "valid": np.stack(val), "luts": luts, "rays": rays}
+
+
+_KERNEL: list[Any] = []
+_RAYS: list[Any] = []
+
+
+def _jit_rays():
+    import jax
+    import jax.numpy as jnp
+
+    from .. import groundtruth as gt
+
+    if not _RAYS:
+        _RAYS.append(jax.jit(lambda c: gt.pixel_rays(c, dtype=jnp.float32)))
+    return _RAYS[0]
+
+
+def _jit_camera_maps():
+    import jax
+
+    if not _KERNEL:
+        _KERNEL.append(jax.jit(_camera_maps_kernel, static_argnums=(11,)))
+    return _KERNEL[0]

@@ -23,7 +23,7 @@ BEV_ROTATION = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 #: Boxes (x0, x1, y0, y1, height, class) in the vehicle frame, metres: all but the last lower than
 #: every camera (0.62 m and up), so that their tops are seen; the last (1.5 m) only by its sides.
 BOXES = ((5.0, 6.5, -1.0, 0.6, 0.5, 10), (-6.5, -5.0, 1.5, 3.0, 0.3, 22), (1.0, 2.0, 4.0, 5.0, 0.4, 5),
-         (0.5, 2.0, -5.5, -4.5, 0.15, 8), (-3.5, -2.5, -5.0, -4.0, 1.5, 1))
+         (0.5, 2.0, -5.5, -4.5, 0.15, 8), (-3.5, -2.5, -5.0, -4.0, 1.5, 11))
 
 
 def ground_class(x, y):
@@ -34,11 +34,12 @@ def ground_class(x, y):
 
 
 def render(rays_vehicle: np.ndarray, origin: np.ndarray, boxes=BOXES):
-    """Range (1000 where nothing is hit) and class (13 = sky) of rays from ``origin`` (float64)."""
+    """Range (1000 where nothing is hit) and class (13 = sky) of rays from ``origin`` (one point or
+    one per ray; float64)."""
     d = np.asarray(rays_vehicle, np.float64)
     o = np.asarray(origin, np.float64)
     down = d[..., 2] < -1e-9
-    best = np.where(down, -o[2] / np.where(down, d[..., 2], -1.0), np.inf)
+    best = np.where(down, -o[..., 2] / np.where(down, d[..., 2], -1.0), np.inf)
     cls = np.where(down, 0, 13)
     hit_pt = o + np.where(np.isfinite(best), best, 0.0)[..., None] * d
     cls = np.where(down, ground_class(hit_pt[..., 0], hit_pt[..., 1]), 13)

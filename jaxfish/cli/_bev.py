@@ -1,0 +1,232 @@
+"""``jaxfish bev SOURCE --out DIR``: the true top view, the camera-fused top view and the IPM
+baseline of a capture (frames) or of a built SynWoodScape-layout dataset (samples), with colour
+renderings and the mIoU of fused and IPM against the truth.
+
+Written per sample ``ID`` (a capture frame's id is ``f"{frame:05d}"``), every PNG carrying the BEV
+scale and axes as metadata (``jaxfish.io.read_bev_metadata``)::
+
+    DIR/{truth,fused}/ID_semantic.png        class index (255 = no observation)
+    DIR/{truth,fused}/ID_semantic_color.png  SynWoodScape palette (black = no observation)
+    DIR/{truth,fused}/ID_height.npy / .png   float32 metres above the ground / viridis 0-4 m
+    DIR/{truth,fused}/ID_occupancy.png       255 occupied, 0 free (or unobserved)
+    DIR/ipm/ID_semantic.png, ID_semantic_color.png
+    DIR/scores.json                          per-sample and pooled per-class IoU, mIoU
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from ._app import app, console, fail
+
+FISHEYES = ("FV", "MVL", "MVR", "RV")
+NO_LABEL = 255
+
+
+def _parse_frames(text: str | None, available: list[int]) -> list[int]:
+    if text is None:
+        return list(available)
+    out: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        try:
+            if "-" in part:
+                a, b = (int(p) for p in part.split("-", 1))
+                out.extend(range(a, b + 1))
+            elif part:
+                out.append(int(part))
+        except ValueError:
+            raise fail(f"--frames: {part!r} is not a frame number or range like 2-5") from None
+    missing = sorted(set(out) - set(available))
+    if missing:
+        raise fail(f"--frames: frame(s) {missing} not in the capture (it has {available})")
+    return out
+
+
+def _write_view(out: Path, stem: str, meta: dict, semantic, height=None, occupancy=None) -> None:
+    import jax
+    import numpy as np
+
+    from .. import bev as jbev
+    from .. import groundtruth as gt
+    from ..io import write_depth_npy, write_png_with_metadata
+
+    sem = np.asarray(semantic)
+    idx = np.where((sem >= 0) & (sem < NO_LABEL), sem, NO_LABEL).astype(np.uint8)
+    write_png_with_metadata(out / f"{stem}_semantic.png", idx, dict(meta, content="class index, 255 = no observation"))
+    write_png_with_metadata(out / f"{stem}_semantic_color.png", np.asarray(jax.jit(gt.colorize_labels)(sem)),
+                            dict(meta, content="SynWoodScape palette", palette=gt.SYNWOODSCAPE_PALETTE.tolist()))
+    if height is not None:
+        h = np.asarray(height, np.float32)
+        write_depth_npy(out / f"{stem}_height.npy", h)
+        lo, hi = jbev.HEIGHT_COLOR_RANGE_M
+        write_png_with_metadata(out / f"{stem}_height.png", np.asarray(jax.jit(jbev.colorize_height)(h)),
+                                dict(meta, content="height above the ground (m), viridis", color_range_m=[lo, hi]))
+    if occupancy is not None:
+        write_png_with_metadata(out / f"{stem}_occupancy.png", np.asarray(occupancy).astype(np.uint8) * 255,
+                                dict(meta, content="occupancy: 255 occupied, 0 free or unobserved"))
+
+
+def _capture_items(source: Path, frames: str | None):
+    """Yield (id, bev camera, pose, maps, truth dict) per capture frame."""
+    import numpy as np
+
+    from ..io import CaptureReader, capture_bev_ground_truth, capture_camera_maps
+
+    reader = CaptureReader(source)
+    chosen = _parse_frames(frames, reader.frames)
+    luts = rays = None
+    for frame in chosen:
+        truth = capture_bev_ground_truth(reader, frame)
+        maps = capture_camera_maps(reader, frame, luts=luts, rays=rays)
+        luts, rays = maps["luts"], maps["rays"]
+        yield (f"{frame:05d}", truth["camera"], truth["camera_to_vehicle"], maps,
+               {"semantic": np.asarray(truth["truth"].semantic), "height_m": truth["height_m"],
+                "occupancy": truth["occupancy"]})
+
+
+def _dataset_items(source: Path, samples: str | None):
+    """Yield (id, bev camera, pose, maps, truth dict or None) per built sample."""
+    import numpy as np
+
+    from .. import bev as jbev
+    from .._errors import JaxfishError
+    from ..io import load_bev_calibration, load_calibration, read_label_png
+
+    cal = source / "calibration_data"
+    names = [n for n in FISHEYES if (cal / f"{n}.json").is_file()]
+    if len(names) != len(FISHEYES):
+        raise JaxfishError(f"{cal}: needs {', '.join(f'{n}.json' for n in FISHEYES)} (found {names})")
+    calibs = [load_calibration(cal / f"{n}.json") for n in names]
+    cam, pose = load_bev_calibration(cal / "BEV.json")
+    depth_dir = source / "depth_maps" / "raw_data"
+    ids = sorted(p.stem[: -len("_FV")] for p in depth_dir.glob("*_FV.npy"))
+    if samples is not None:
+        want = [s.strip() for s in samples.split(",") if s.strip()]
+        missing = sorted(set(want) - set(ids))
+        if missing:
+            raise JaxfishError(f"{depth_dir}: sample(s) {missing} have no {{id}}_FV.npy range map")
+        ids = want
+    if not ids:
+        raise JaxfishError(f"{depth_dir}: no samples (*_FV.npy range maps)")
+    cameras = [c.camera for c in calibs]
+    for sid in ids:
+        rng, sem = [], []
+        for n, c in zip(names, calibs, strict=True):
+            p = depth_dir / f"{sid}_{n}.npy"
+            if not p.is_file():
+                raise JaxfishError(f"{p}: range map missing")
+            r = np.load(p, allow_pickle=False)
+            lab_path = source / "semantic_annotations" / "gtLabels" / f"{sid}_{n}.png"
+            lab = read_label_png(lab_path)
+            if r.shape != (c.camera.height, c.camera.width) or lab.shape != r.shape:
+                raise JaxfishError(f"{p}: range {r.shape} / labels {lab.shape} do not match {n}'s calibration "
+                                   f"{c.camera.width} x {c.camera.height}")
+            rng.append(r.astype(np.float32))
+            sem.append(lab)
+        rng_a = np.stack(rng)
+        maps = {"names": names, "cameras": cameras, "cameras_to_vehicle": [c.camera_to_vehicle for c in calibs],
+                "range_m": rng_a, "semantic": np.stack(sem).astype(np.int32), "valid": rng_a > 0}
+        truth = None
+        tpath = source / "semantic_annotations" / "gtLabels" / f"{sid}_BEV.png"
+        if tpath.is_file():
+            tsem = read_label_png(tpath)
+            if tsem.shape != (cam.height, cam.width):
+                raise JaxfishError(f"{tpath}: {tsem.shape} does not match BEV.json's {cam.width} x {cam.height}")
+            hpath = source / "bev_height" / "raw_data" / f"{sid}_BEV.npy"
+            height = np.load(hpath).astype(np.float32) if hpath.is_file() else None
+            occ = np.asarray(jbev.occupancy_map(height)) if height is not None else None
+            truth = {"semantic": tsem, "height_m": height, "occupancy": occ}
+        yield sid, cam, pose, maps, truth
+
+
+@app.command()
+def bev(
+    source: Path = typer.Argument(..., help="A capture directory (capture.json) or a built dataset (calibration_data/)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output directory (created)."),
+    frames: str | None = typer.Option(None, "--frames", help="Capture frames, e.g. '0,2-4' (default: all)."),
+    samples: str | None = typer.Option(None, "--samples", help="Dataset sample ids, e.g. '00000,00003' (default: all)."),
+) -> None:
+    """True top view, camera-fused top view and IPM baseline of a capture or a built dataset, with mIoU."""
+    import jax
+    import numpy as np
+    from rich.table import Table
+
+    from .. import bev as jbev
+    from ..groundtruth import SYNWOODSCAPE_CLASSES
+    from ..io import bev_metadata
+
+    if (source / "capture.json").is_file():
+        items = _capture_items(source, frames)
+        kind = "capture"
+    elif (source / "calibration_data").is_dir():
+        if frames is not None:
+            raise fail("--frames is for captures; use --samples for a built dataset")
+        items = _dataset_items(source, samples)
+        kind = "dataset"
+    else:
+        raise fail(f"{source}: neither a capture (capture.json) nor a built dataset (calibration_data/)")
+    fuse = jax.jit(lambda c, p, r, s, v, b, bp, ry: jbev.fuse_cameras(c, p, r, s, b, bp, valid=v, rays=ry))
+    ipm = jax.jit(lambda c, p, s, v, b, bp: jbev.ipm_semantics(c, p, s, b, bp, valid=v))
+    iou = jax.jit(lambda p, t: jbev.semantic_iou(p, t, num_classes=len(SYNWOODSCAPE_CLASSES)))
+    rays = None
+    per_sample = []
+    pooled = {"fused": [], "ipm": []}
+    with console.status(f"{kind}: top views ...") as status:
+        for sid, cam, pose, maps, truth in items:
+            status.update(f"{kind} sample {sid}: fusing {len(maps['names'])} cameras")
+            cams = jbev.stack_cameras(maps["cameras"])
+            poses = jbev.stack_poses(maps["cameras_to_vehicle"])
+            if rays is None:
+                rays = jax.jit(jbev.rig_rays)(cams)
+            f = fuse(cams, poses, maps["range_m"], maps["semantic"], maps["valid"], cam, pose, rays)
+            i = ipm(cams, poses, maps["semantic"], maps["valid"], cam, pose)
+            meta = bev_metadata(cam, pose, sample=sid)
+            _write_view(out / "fused", sid, meta, f.semantic, f.height_m, f.occupancy)
+            _write_view(out / "ipm", sid, meta, i.semantic)
+            row = {"sample": sid, "observed_fraction": float(np.mean(np.asarray(f.observed)))}
+            if truth is not None:
+                _write_view(out / "truth", sid, meta, truth["semantic"], truth["height_m"], truth["occupancy"])
+                t = np.asarray(truth["semantic"], np.int32)
+                for name, pred in (("fused", f.semantic), ("ipm", i.semantic)):
+                    s = iou(np.asarray(pred, np.int32), t)
+                    row[f"miou_{name}"] = float(s.mean_iou)
+                    pooled[name].append((np.asarray(s.intersection), np.asarray(s.union)))
+            per_sample.append(row)
+    table = Table(title=f"BEV mIoU vs the true top view ({kind})")
+    for col in ("sample", "fused mIoU", "IPM mIoU", "cells observed by fusion"):
+        table.add_column(col)
+    for r in per_sample:
+        table.add_row(r["sample"], f"{100 * r.get('miou_fused', float('nan')):.1f}",
+                      f"{100 * r.get('miou_ipm', float('nan')):.1f}", f"{100 * r['observed_fraction']:.0f} %")
+    console.print(table)
+    scores = {"source": str(source), "kind": kind, "samples": per_sample}
+    if pooled["fused"]:
+        cls_table = Table(title="per class, pooled over samples (IoU %)")
+        for col in ("class", "fused", "IPM"):
+            cls_table.add_column(col)
+        per_class = {}
+        means = {}
+        for name in ("fused", "ipm"):
+            inter = np.sum([a for a, _ in pooled[name]], axis=0)
+            union = np.sum([b for _, b in pooled[name]], axis=0)
+            present = union > 0
+            per_class[name] = np.where(present, inter / np.maximum(union, 1), np.nan)
+            means[name] = float(np.nanmean(per_class[name]))
+        for k, cname in enumerate(SYNWOODSCAPE_CLASSES):
+            if np.isfinite(per_class["fused"][k]) or np.isfinite(per_class["ipm"][k]):
+                cls_table.add_row(cname, *(f"{100 * per_class[n][k]:.1f}" for n in ("fused", "ipm")))
+        cls_table.add_row("mean (mIoU)", f"{100 * means['fused']:.1f}", f"{100 * means['ipm']:.1f}")
+        console.print(cls_table)
+        scores["per_class_iou"] = {n: {SYNWOODSCAPE_CLASSES[k]: float(v) for k, v in enumerate(per_class[n])
+                                       if np.isfinite(v)} for n in ("fused", "ipm")}
+        scores["miou"] = means
+    else:
+        console.print("no true top view found: wrote the fused and IPM views only", highlight=False)
+    from ..io import atomic_write_text
+
+    atomic_write_text(out / "scores.json", json.dumps(scores, indent=1) + "\n")
+    console.print(f"wrote {len(per_sample)} sample(s) to {out}", highlight=False)
