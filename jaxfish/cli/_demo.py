@@ -1,39 +1,101 @@
-"""``jaxfish demo OUT``: the README's one-command demo."""
+"""``jaxfish demo OUT``: the README's one-command demo. Renders the embedded street scene with
+jaxfish's default rig to ``OUT/capture``, builds the dataset in ``OUT/dataset`` and writes one
+contact sheet per sample to ``OUT/contact_sheets/{sample}.png``."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import typer
 
-from ._app import app, console
+from ._app import app, console, fail
+
+
+def demo_config(scale: float):
+    """The capture settings of the demo at ``scale`` (1 = SynWoodScape's sizes: fisheye 1280 x 966,
+    BEV 1024 px; faces just large enough not to undersample the fisheye)."""
+    from ..scene import CaptureConfig
+
+    face = max(16, round(768 * scale))
+    bev = max(16, round(1024 * scale))
+    front = max(16, round(1632 * scale))
+    return CaptureConfig(face_size=face, bev_size=bev, front_width=front, front_height=max(12, round(front * 3 / 4)),
+                         lidar_channels=32 if scale >= 0.5 else 8, lidar_points_per_channel=1024 if scale >= 0.5 else 128,
+                         radar_points=150 if scale >= 0.5 else 32, dvs_substeps=4 if scale >= 0.5 else 2)
+
+
+def demo_rig(scale: float):
+    """jaxfish's default rig, resized by ``scale`` (exact resize of the intrinsics)."""
+    import jax.numpy as jnp
+
+    from .. import default_rig
+
+    rig = default_rig()
+    if scale == 1.0:
+        return rig
+    return {k: v.resize(max(16, round(v.camera.width * scale)), max(12, round(v.camera.height * scale))).astype(jnp.float32)
+            for k, v in rig.items()}
 
 
 @app.command()
 def demo(
-    out: Path = typer.Argument(..., help="Output directory (created)."),
-    calibration: Path | None = typer.Option(None, "--calibration", "-c", help="Calibration directory (default: jaxfish's own rig)."),
+    out: Path = typer.Argument(..., help="Output directory (created): capture/, dataset/, contact_sheets/."),
+    frames: int = typer.Option(2, "--frames", "-n", help="Number of samples to render and build."),
+    scale: float = typer.Option(0.5, "--scale", help="Size factor of every image (1 = full SynWoodScape size)."),
+    seed: int = typer.Option(0, "--seed", "-s", help="Scene seed."),
+    workers: int | None = typer.Option(None, "--workers", "-w", help="Build on a local dask cluster of N workers."),
 ) -> None:
-    """Load a rig, report its geometry, and write per-camera incidence-angle maps and the rig JSONs."""
-    import jax.numpy as jnp
-    import numpy as np
+    """Render the embedded street scene, build its SynWoodScape-style dataset and write a contact
+    sheet per sample (rows: RGB t-1, RGB t, depth, semantics, instances, motion, flow, events;
+    columns: front, rear, top view, left, right)."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from .. import default_rig, load_rig, save_rig
-    from ..io import write_image
+    from ..dataset import write_contact_sheet
+    from ..io import synthesize_capture
+    from ..io._capture import steps_per_frame
+    from ._build import run_build
 
-    rig = load_rig(calibration) if calibration is not None else default_rig()
-    out.mkdir(parents=True, exist_ok=True)
-    save_rig(rig, out / "calibration")
-    for name, calib in rig.items():
-        cam = calib.camera
-        rays, valid = cam.unproject(cam.pixel_grid(jnp.float32))
-        theta = np.degrees(np.arccos(np.clip(np.asarray(rays[..., 2]), -1.0, 1.0)))
-        theta = np.where(np.asarray(valid), theta, 0.0)
-        img = np.clip(theta / 180.0 * 65535.0, 0, 65535).astype(np.uint16)
-        write_image(out / f"theta_{name}.png", img)
-        console.print(
-            f"{name}: {cam.width}x{cam.height}, principal point {np.asarray(cam.principal_point).round(3)}, "
-            f"field of view {2 * theta.max():.1f} deg, theta_max {np.degrees(float(cam.theta_max())):.1f} deg",
-            highlight=False,
-        )
-    console.print(f"wrote {out}", highlight=False)
+    if frames < 1:
+        raise fail(f"--frames must be at least 1, got {frames}")
+    if not 0.01 <= scale <= 1.0:
+        raise fail(f"--scale must lie in [0.01, 1], got {scale}")
+    start = time.perf_counter()
+    rig = demo_rig(scale)
+    config = demo_config(scale)
+    capture = out / "capture"
+    if not _reusable(capture, frames, seed, config.face_size):
+        import shutil
+
+        shutil.rmtree(capture, ignore_errors=True)  # a different demo was here: start afresh
+        shutil.rmtree(out / "dataset", ignore_errors=True)
+        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                      TimeElapsedColumn(), console=console) as bar:
+            task = bar.add_task("render", total=frames * steps_per_frame(rig))
+            synthesize_capture(capture, rig, frames=frames, seed=seed, config=config,
+                               progress=lambda msg: bar.update(task, advance=1, description=f"render {msg}"))
+    report = run_build(capture, out / "dataset", frames=list(range(frames)), scheduler=None, workers=workers,
+                       processes=True, backward_flow=False, bev=True, write_threads=2)
+    sheets = []
+    for sample in report.samples:
+        if sample in report.failed:
+            continue
+        sheets.append(write_contact_sheet(out / "dataset", sample, out / "contact_sheets" / f"{sample}.png"))
+    console.print(f"capture: {capture}\ndataset: {out / 'dataset'} (layout and conventions in dataset.json)\n"
+                  f"contact sheets: {', '.join(str(p) for p in sheets)}\n"
+                  f"done in {time.perf_counter() - start:.1f} s", highlight=False, markup=False)
+    if not report.ok:
+        raise typer.Exit(1)
+
+
+def _reusable(capture: Path, frames: int, seed: int, face_size: int) -> bool:
+    """Whether ``capture`` already holds this demo's frames (same seed and size): then re-running
+    the demo resumes instead of rendering again."""
+    import json
+
+    try:
+        meta = json.loads((capture / "capture.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return (meta.get("seed") == seed and meta.get("face_size") == face_size
+            and set(range(frames)) <= set(meta.get("frames", [])))

@@ -1,0 +1,407 @@
+"""Capture directory in, SynWoodScape-style dataset out: serial, resumable, or on a Dask cluster.
+
+Each sample is a pure function of (capture, frame, options): `build_sample` reads the capture's
+frame, computes every camera's ground truth and writes the sample's files atomically, then its
+completion marker ``.done/{sample}.json`` (the files and their SHA-256) last. `build_dataset`
+skips samples whose marker exists, removes the temporary files a killed run left behind, runs the
+remaining samples serially or on a dask.distributed cluster (the bytes are the same), reports each
+failing sample with its reason, and finally writes the dataset-level files (``dataset.json``,
+``calibration_data``, ``seg_annotation_info.json``).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import hashlib
+import json
+import os
+import pickle
+import threading
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._errors import JaxfishError
+from ._layout import BEV_CAMERA, FISHEYE_CAMERAS, sample_id
+
+#: Folder of the per-sample completion markers.
+DONE_DIR = ".done"
+
+
+class DatasetError(JaxfishError):
+    """A dataset build cannot start or a sample cannot be built (names the file and the reason)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class BuildOptions:
+    """What a build computes (every option changes the bytes of some file, so `dataset.json`
+    records them): ``backward_flow`` also writes ``optical_flow_backward`` (t -> t-1 on the t
+    grid); ``bev`` builds the top-view camera's files when the capture has one;
+    ``motion_threshold_m`` is the motion-mask threshold on the actor displacement;
+    ``write_threads`` writes files in a thread pool while the next camera computes (0 = inline)."""
+
+    backward_flow: bool = False
+    bev: bool = True
+    motion_threshold_m: float = 0.5
+    write_threads: int = 2
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options that shape the output (``write_threads`` does not)."""
+        return {"backward_flow": self.backward_flow, "bev": self.bev, "motion_threshold_m": self.motion_threshold_m}
+
+
+@dataclasses.dataclass
+class BuildReport:
+    """What a build did: the requested ``samples`` (ids), those ``built`` now, ``skipped``
+    (complete from an earlier run), ``failed`` ``{sample: reason}``, the wall time and the rate of
+    built samples per second. ``ok`` is True when nothing failed."""
+
+    out_dir: Path
+    samples: list[str]
+    built: list[str] = dataclasses.field(default_factory=list)
+    skipped: list[str] = dataclasses.field(default_factory=list)
+    failed: dict[str, str] = dataclasses.field(default_factory=dict)
+    seconds: float = 0.0
+    stale_removed: int = 0
+
+    @property
+    def ok(self) -> bool:
+        """True when no sample failed."""
+        return not self.failed
+
+    @property
+    def samples_per_second(self) -> float:
+        """Built samples per second of wall time (0 when nothing was built)."""
+        return len(self.built) / self.seconds if self.seconds > 0 and self.built else 0.0
+
+    def summary(self) -> str:
+        """One paragraph: counts, rate, and one line per failed sample with its reason."""
+        lines = [f"{len(self.built)} built, {len(self.skipped)} already complete, {len(self.failed)} failed "
+                 f"of {len(self.samples)} sample(s) in {self.seconds:.1f} s ({self.samples_per_second:.2f} samples/s)"
+                 f" -> {self.out_dir}"]
+        lines += [f"  sample {s} failed: {r}" for s, r in sorted(self.failed.items())]
+        return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- per-worker constants
+_CACHE: dict[Any, Any] = {}
+_CACHE_LOCK = threading.Lock()
+
+
+def _file_key(path: Path) -> tuple[str, str]:
+    return str(path.resolve()), hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else ""
+
+
+def _camera_constants(reader, camera: str):
+    """(LUT, rays, event map) of a fisheye camera: built once per calibration per worker process."""
+    import jax
+    import jax.numpy as jnp
+
+    from .. import groundtruth as gt
+    from ..reprojection import CubeRig, build_lut
+
+    key = ("fisheye", _file_key(reader.root / "calibration" / f"{camera}.json"),
+           int(reader.meta.get("face_size", 0)), tuple(reader.faces))
+    with _CACHE_LOCK:
+        if key not in _CACHE:
+            cam = reader.rig()[camera].camera.astype(jnp.float32)
+            size = int(reader.meta.get("face_size", 0))
+            if size <= 0:
+                raise DatasetError(f"{reader.root / 'capture.json'}: field 'face_size' missing or not positive")
+            lut = build_lut(CubeRig(size, faces=tuple(reader.faces), dtype=jnp.float32), cam)
+            rays = jax.jit(lambda c: gt.pixel_rays(c, dtype=jnp.float32))(cam)
+            _CACHE[key] = (lut, rays, gt.event_map_from_lut(lut))
+        return _CACHE[key]
+
+
+def _bev_constants(reader):
+    import jax
+    import jax.numpy as jnp
+
+    from .. import groundtruth as gt
+    from ..io._bev import bev_sensor
+
+    cam, _ = bev_sensor(reader)
+    key = ("bev", _file_key(reader.root / "sensors.json"))
+    with _CACHE_LOCK:
+        if key not in _CACHE:
+            _CACHE[key] = jax.jit(lambda c: gt.pixel_rays(c, dtype=jnp.float32))(cam)
+        return _CACHE[key]
+
+
+def clear_worker_cache() -> None:
+    """Forget the per-calibration constants (LUTs, rays) this process has built."""
+    with _CACHE_LOCK:
+        _CACHE.clear()
+
+
+# ------------------------------------------------------------------------------------- one sample
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _vehicle_lines(ego: dict[str, Any], instant: str) -> str:
+    def vec(name, v):
+        return f"{name} " + " ".join(f"{float(x):.9g}" for x in v)
+
+    if instant == "t":
+        tr = ego["transform"]
+        lines = [f"timestamp_s {float(ego['timestamp_s']):.9g}", vec("location_m", tr["location"]),
+                 vec("rotation_deg", tr["rotation"]), vec("velocity_mps", ego["velocity"]),
+                 vec("acceleration_mps2", ego["acceleration"]), vec("angular_velocity_degps", ego["angular_velocity"])]
+    else:
+        tr = ego["transform_prev"]
+        lines = [f"timestamp_s {float(ego['timestamp_prev_s']):.9g}", vec("location_m", tr["location"]),
+                 vec("rotation_deg", tr["rotation"])]
+    header = ("# ego vehicle (CARLA world: x forward, y right, z up, metres; rotation pitch yaw roll, degrees; "
+              "velocity / acceleration in the world frame, angular velocity deg/s)")
+    return header + "\n" + "\n".join(lines) + "\n"
+
+
+def _sample_extras(reader, frame: int, out: Path, sid: str) -> list[Path]:
+    from ..io import atomic_write_bytes, atomic_write_text
+    from ..io._capture import CaptureError
+
+    ego = reader.ego(frame)
+    try:
+        t_text, p_text = _vehicle_lines(ego, "t"), _vehicle_lines(ego, "t-1")
+    except (KeyError, TypeError, ValueError) as e:
+        raise CaptureError(f"{reader.root}/frames/{frame:06d}/ego.json: malformed ({e!r})") from e
+    paths = [atomic_write_text(out / "vehicle_data" / "rgb_images" / f"{sid}.txt", t_text),
+             atomic_write_text(out / "vehicle_data" / "previous_images" / f"{sid}.txt", p_text)]
+    lidar = {"points": np.ascontiguousarray(reader.lidar(frame), np.float32),
+             "semantic_lidar": np.ascontiguousarray(reader.semantic_lidar(frame)),
+             "radar": np.ascontiguousarray(reader.radar(frame)),
+             "frame": "lidar sensor's local Unreal frame (x forward, y right, z up), metres; radar: m/s, rad, rad, m"}
+    paths.append(atomic_write_bytes(out / "lidar_data" / f"{sid}.pkl", pickle.dumps(lidar, protocol=4)))
+    return paths
+
+
+def has_bev(reader) -> bool:
+    """Whether a capture has a BEV top-view camera (``sensors.json`` field ``bev``)."""
+    try:
+        return "bev" in reader.sensors()
+    except JaxfishError:
+        return False
+
+
+def build_sample(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, frame: int,
+                 options: BuildOptions | None = None) -> dict[str, Any]:
+    """Build one sample (capture frame ``frame``) into ``out_dir`` and write its marker last.
+
+    Pure in (capture, frame, options): the same inputs give the same bytes in any process.
+    Returns ``{"sample", "frame", "files": {relative path: sha256}}`` (the marker's content).
+    Raises on a missing or corrupt capture file (`jaxfish.io.CaptureError` naming the file)."""
+    from ..io import (
+        CaptureReader,
+        atomic_write_text,
+        capture_bev_ground_truth,
+        capture_ground_truth,
+        write_bev_ground_truth,
+        write_camera_ground_truth,
+        write_sample_ground_truth,
+    )
+
+    options = options or BuildOptions()
+    out = Path(out_dir)
+    reader = CaptureReader(capture_dir)
+    if int(frame) not in reader.frames:
+        raise DatasetError(f"{reader.root / 'capture.json'}: frame {frame} is not listed in field 'frames'")
+    sid = sample_id(frame)
+    thr = options.motion_threshold_m
+    written: list[Path] = []
+    pool = concurrent.futures.ThreadPoolExecutor(options.write_threads) if options.write_threads > 0 else None
+    pending: list[concurrent.futures.Future] = []
+
+    def write(fn, *args, **kwargs):
+        if pool is None:
+            written.extend(fn(*args, **kwargs))
+        else:
+            pending.append(pool.submit(fn, *args, **kwargs))
+
+    try:
+        first = None
+        cams = [c for c in FISHEYE_CAMERAS if c in reader.cameras] + [c for c in reader.cameras if c not in FISHEYE_CAMERAS]
+        for cam in cams:
+            lut, rays, emap = _camera_constants(reader, cam)
+            res = capture_ground_truth(reader, frame, cam, lut=lut, rays=rays, event_map=emap,
+                                       backward_flow=options.backward_flow, motion_threshold_m=thr)
+            first = first or res
+            write(write_camera_ground_truth, out, sid, cam, res, motion_threshold_m=thr)
+            if options.backward_flow:
+                write(_write_backward_flow, out, sid, cam, res)
+        if options.bev and has_bev(reader):
+            res = capture_bev_ground_truth(reader, frame, rays=_bev_constants(reader),
+                                           backward_flow=options.backward_flow, motion_threshold_m=thr)
+            first = first or res
+            write(write_camera_ground_truth, out, sid, BEV_CAMERA, res, motion_threshold_m=thr)
+            write(write_bev_ground_truth, out, sid, res)
+            if options.backward_flow:
+                write(_write_backward_flow, out, sid, BEV_CAMERA, res)
+        if first is None:
+            raise DatasetError(f"{reader.root / 'capture.json'}: no camera to build (field 'cameras' is empty)")
+        write(write_sample_ground_truth, out, sid, first, motion_threshold_m=thr)
+        write(_sample_extras, reader, frame, out, sid)
+        for f in pending:
+            written.extend(f.result())
+    finally:
+        if pool is not None:
+            for f in pending:
+                f.cancel()
+            pool.shutdown(wait=True)
+    files = {p.relative_to(out).as_posix(): _sha256(p) for p in sorted(set(written))}
+    marker = {"sample": sid, "frame": int(frame), "files": dict(sorted(files.items()))}
+    atomic_write_text(out / DONE_DIR / f"{sid}.json", json.dumps(marker, indent=1) + "\n")
+    return marker
+
+
+def _write_backward_flow(root: Path, sid: str, camera: str, result: dict[str, Any]) -> list[Path]:
+    from ..io import write_flo, write_flow_color
+
+    back = result["truth"].flow_backward
+    fl, fv = np.asarray(back.flow), np.asarray(back.valid)
+    stem = f"{sid}_{camera}"
+    return [write_flo(root / "optical_flow_backward" / "raw_data" / f"{stem}.flo", np.where(fv[..., None], fl, 0.0)),
+            write_flow_color(root / "optical_flow_backward" / "color_coded" / f"{stem}.png", fl, fv)]
+
+
+def _sample_task(capture_dir: str, out_dir: str, frame: int, options: BuildOptions) -> tuple[str, str | None]:
+    """Run `build_sample`, turning any error into a one-line reason (the dask / serial task)."""
+    sid = sample_id(frame)
+    try:
+        build_sample(capture_dir, out_dir, frame, options)
+        return sid, None
+    except Exception as e:  # a failing sample is reported, never stops the others
+        reason = f"{type(e).__name__}: {e}"
+        if not isinstance(e, (JaxfishError, OSError, ValueError)):
+            reason += " | " + traceback.format_exc(limit=3).strip().splitlines()[-1]
+        return sid, reason
+
+
+# --------------------------------------------------------------------------------------- the build
+def is_complete(out_dir: str | os.PathLike, sample: str) -> bool:
+    """Whether ``sample``'s completion marker exists and every file it lists is present."""
+    marker = Path(out_dir) / DONE_DIR / f"{sample}.json"
+    if not marker.is_file():
+        return False
+    try:
+        files = json.loads(marker.read_text())["files"]
+    except (json.JSONDecodeError, KeyError, TypeError):
+        return False
+    return all((Path(out_dir) / rel).is_file() for rel in files)
+
+
+def remove_stale_temporaries(out_dir: str | os.PathLike) -> int:
+    """Delete the temporary files (``.{name}.*.part*``) an interrupted run left in ``out_dir``;
+    returns how many. Only call it when no other build writes to ``out_dir``."""
+    n = 0
+    root = Path(out_dir)
+    if not root.is_dir():
+        return 0
+    for p in root.rglob(".*.part*"):
+        if p.is_file():
+            p.unlink(missing_ok=True)
+            n += 1
+    return n
+
+
+def build_dataset(
+    capture_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    frames: Sequence[int] | None = None,
+    options: BuildOptions | None = None,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    processes: bool = True,
+    progress: Callable[[str, str | None], None] | None = None,
+) -> BuildReport:
+    """Build the dataset of a capture (``docs/dataset.md``).
+
+    ``frames``: the capture frames to build (default all, in order); each becomes sample
+    ``{frame:05d}``. Samples already complete (marker present) are skipped; temporary files of a
+    killed run are removed first. ``scheduler`` (a dask.distributed address) or ``workers`` (start
+    a ``LocalCluster`` of that many workers, process workers unless ``processes=False``) run the
+    samples in parallel; the output bytes are those of a serial run. ``progress(sample, error)``
+    is called after each sample (``error`` None on success). A failing sample (missing or corrupt
+    capture file) is recorded in the report with its reason and does not stop the others. Finally
+    writes ``dataset.json`` (listing the complete samples), ``calibration_data`` and
+    ``semantic_annotations/seg_annotation_info.json``."""
+    from ..io import CaptureReader
+
+    options = options or BuildOptions()
+    start = time.perf_counter()
+    reader = CaptureReader(capture_dir)  # a missing / malformed header stops the build here
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    available = reader.frames
+    wanted = list(available) if frames is None else [int(f) for f in frames]
+    missing = [f for f in wanted if f not in available]
+    report = BuildReport(out_dir=out, samples=[sample_id(f) for f in wanted])
+    report.stale_removed = remove_stale_temporaries(out)
+    tick = progress or (lambda _s, _e: None)
+    todo = []
+    for f in wanted:
+        sid = sample_id(f)
+        if f in missing:
+            report.failed[sid] = f"{reader.root / 'capture.json'}: frame {f} is not in the capture (field 'frames')"
+            tick(sid, report.failed[sid])
+        elif is_complete(out, sid):
+            report.skipped.append(sid)
+            tick(sid, None)
+        else:
+            todo.append(f)
+
+    def record(sid: str, err: str | None) -> None:
+        if err is None:
+            report.built.append(sid)
+        else:
+            report.failed[sid] = err
+        tick(sid, err)
+
+    if todo and (scheduler is not None or workers is not None):
+        _run_dask(str(reader.root), str(out), todo, options, scheduler, workers, processes, record)
+    else:
+        for f in todo:
+            record(*_sample_task(str(reader.root), str(out), f, options))
+    from ._manifest import write_dataset_files
+
+    write_dataset_files(reader, out, options)
+    report.built.sort()
+    report.seconds = time.perf_counter() - start
+    return report
+
+
+def _run_dask(capture_dir: str, out_dir: str, frames: list[int], options: BuildOptions, scheduler: str | None,
+              workers: int | None, processes: bool, record: Callable[[str, str | None], None]) -> None:
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise DatasetError("dask.distributed is not installed: pip install 'jaxfish[distributed]'") from e
+    cluster = None
+    if scheduler is not None:
+        client = Client(scheduler)
+    else:
+        n = int(workers or 1)
+        if n < 1:
+            raise DatasetError(f"workers must be at least 1, got {workers}")
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=None)
+        client = Client(cluster)
+    try:
+        futures = [client.submit(_sample_task, capture_dir, out_dir, f, options, key=f"jaxfish-sample-{sample_id(f)}",
+                                 pure=False) for f in frames]
+        for fut in as_completed(futures):
+            try:
+                sid, err = fut.result()
+            except Exception as e:  # the worker itself died
+                sid, err = str(fut.key).removeprefix("jaxfish-sample-"), f"worker failure: {type(e).__name__}: {e}"
+            record(sid, err)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

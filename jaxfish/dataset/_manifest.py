@@ -1,0 +1,148 @@
+"""``dataset.json``: every convention SynWoodScape's release left undocumented, stated in the dataset
+itself, plus the layout, the capture's provenance and the sample list; and the other dataset-level
+files (``calibration_data``, ``seg_annotation_info.json``).
+
+Deterministic: no timestamps, hosts or paths; the same capture and options give the same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from ._build import DONE_DIR, BuildOptions, has_bev
+from ._layout import BEV_CAMERA, DATASET_FILES, FISHEYE_CAMERAS, LAYOUT, LAYOUT_VERSION
+
+#: Format name stored in ``dataset.json``.
+DATASET_FORMAT = "jaxfish-synwoodscape"
+
+
+def _complete_samples(out: Path) -> list[str]:
+    d = out / DONE_DIR
+    return sorted(p.stem for p in d.glob("*.json")) if d.is_dir() else []
+
+
+def dataset_manifest(reader, out_dir: str | os.PathLike, options: BuildOptions | None = None) -> dict[str, Any]:
+    """The content of ``dataset.json`` for a capture (`jaxfish.io.CaptureReader`) built into
+    ``out_dir`` with ``options``: conventions (flow direction, depth definition, event time
+    units, BEV scale and axes, coordinate frames, pixel convention), the class table and palette,
+    the corrected SynWoodScape extrinsics, the layout (`LAYOUT`), the capture's provenance, the
+    build options, the jaxfish version and the complete samples (those with a marker)."""
+    import numpy as np
+
+    from .. import SYNWOODSCAPE_CORRECTED_TRANSLATIONS_CARLA, __version__
+    from ..groundtruth import MOTION_THRESHOLD_M, SYNWOODSCAPE_CLASSES, SYNWOODSCAPE_PALETTE
+    from ..io import DEPTH_COLOR_RANGE_M
+
+    options = options or BuildOptions()
+    out = Path(out_dir)
+    meta = reader.meta
+    fisheye = [c for c in FISHEYE_CAMERAS if c in reader.cameras] + [c for c in reader.cameras if c not in FISHEYE_CAMERAS]
+    rig = reader.rig()
+    sizes = {c: [int(rig[c].camera.width), int(rig[c].camera.height)] for c in fisheye}
+    bev = None
+    if options.bev and has_bev(reader):
+        bev = _bev_block(reader)
+        sizes[BEV_CAMERA] = [bev["width"], bev["height"]]
+    cameras = fisheye + ([BEV_CAMERA] if bev else [])
+    return {
+        "format": DATASET_FORMAT,
+        "layout_version": LAYOUT_VERSION,
+        "generator": {"name": "jaxfish", "version": __version__},
+        "capture": {k: meta.get(k) for k in ("format", "version", "source", "seed", "dt_s", "carla_semantic_tags",
+                                              "face_size", "faces", "cameras")},
+        "options": options.to_dict(),
+        "cameras": cameras,
+        "fisheye_cameras": fisheye,
+        "image_size_wh": sizes,
+        "samples": _complete_samples(out),
+        "sample_id": "sample {id:05d} = capture frame id; every sample holds t (files) and t-1 (previous_images)",
+        "time": {"dt_s": meta.get("dt_s", 0.1), "prev": "t-1 = t - dt_s",
+                 "timestamps": "vehicle_data/*/{sample}.txt 'timestamp_s' (simulation time, seconds)"},
+        "conventions": {
+            "pixels": "(u, v) = (column, row); integer coordinates are pixel centres; (0, 0) is the centre of the "
+                      "top-left pixel (WoodScape's projection.py)",
+            "frames": {
+                "world": "CARLA / Unreal world: x forward, y right, z up, left-handed, metres; rotations "
+                         "(pitch, yaw, roll) in degrees",
+                "vehicle": "ISO 8855 ego vehicle frame: x forward, y left, z up, right-handed, metres; origin = "
+                           "the CARLA ego actor origin (the CARLA actor frame with y flipped)",
+                "camera": "OpenCV camera frame: x right, y down, z forward (optical axis)",
+                "calibration": "calibration_data/{camera}.json: WoodScape JSON, quaternion (x, y, z, w) scalar-last, "
+                               "(quaternion, translation) = pose camera -> vehicle",
+            },
+            "depth": {"raw_data": "Euclidean range along each pixel's ray, metres, float32 (not planar z-depth)",
+                      "z_depth": "planar depth along the camera's optical axis = range x ray_z, metres, float32",
+                      "sky_m": 1000.0, "no_ray": 0.0, "colormap_range_m": list(DEPTH_COLOR_RANGE_M)},
+            "optical_flow": {"direction": "forward: from t-1 to t", "grid": "defined on the t-1 pixel grid",
+                             "definition": "flow = uv_t - uv_(t-1) in pixels, u right, v down",
+                             "valid": "the point stays in the image and is not occluded at t; invalid pixels "
+                                      "store 0 in .flo and valid = 0 in KITTI PNGs",
+                             "backward": "optical_flow_backward (t -> t-1 on the t grid) when built with "
+                                         "backward_flow", "color_wheel": "Baker et al. 2007 (Middlebury)"},
+            "events": {"raw_data": {"dtype": "[('x', '<u2'), ('y', '<u2'), ('t', '<i8'), ('pol', '?')]",
+                                    "time_unit": "ns", "time": "absolute simulation time, within [t-1, t]",
+                                    "polarity": "True = brighter"},
+                       "tonic": {"dtype": "[('x', '<i8'), ('y', '<i8'), ('t', '<i8'), ('p', '<i8')]",
+                                 "time_unit": "us", "t": "t_ns // 1000"},
+                       "mapping": "a face event goes to every fisheye pixel whose centre ray lands on its face pixel",
+                       "color_coded": "blue = net positive, red = net negative polarity, white = none",
+                       "cameras": "fisheye cameras only (the BEV has no DVS)"},
+            "bev": bev,
+            "semantic": {"table": "SynWoodScape 25 classes: CARLA 0.9.10 ids 0-18, then 19 water, 20 terrain, "
+                                  "21 two-wheeler, 22 static, 23 dynamic, 24 ego vehicle"},
+            "instances": "gtLabels = CARLA actor id (0 = none); rgbLabels colour = hash of the actor id",
+            "motion": {"threshold_m": options.motion_threshold_m, "default_threshold_m": MOTION_THRESHOLD_M,
+                       "rule": "255 where the pixel's actor moved more than threshold_m between t-1 and t "
+                               "(distances_traveled lists every actor's displacement for re-thresholding)"},
+            "boxes_2d": "lines 'class_name,class_id,x1,y1,x2,y2', inclusive pixel-centre coordinates of the extreme "
+                        "pixels, class_id = SynWoodScape class; empty file when no box",
+            "boxes_3d": "box_3d_annotations: pickle {actor_id: (8, 3) float64 corners, CARLA world, at t}; corner "
+                        "index = 4 ix + 2 iy + iz over the box axes' signs (-, +); class and vehicle-frame corners "
+                        "in box_3d_annotations_ext",
+        },
+        "classes": {"names": list(SYNWOODSCAPE_CLASSES),
+                    "palette": np.asarray(SYNWOODSCAPE_PALETTE).astype(int).tolist()},
+        "corrected_extrinsics": {
+            "synwoodscape_translations_carla": {k: [float(v) for v in t] for k, t in
+                                                SYNWOODSCAPE_CORRECTED_TRANSLATIONS_CARLA.items()},
+            "note": "the released SynWoodScape MVL / MVR translations are wrong; these corrections (WoodScape issue "
+                    "#113; CARLA frame, metres) apply to the release's files (jaxfish.load_calibration(path, "
+                    "apply_errata=True)). This dataset's calibration_data is the capture's own rig, "
+                    "already consistent.",
+        },
+        "layout": [dict(e) for e in LAYOUT],
+        "dataset_files": [dict(e) for e in DATASET_FILES],
+    }
+
+
+def _bev_block(reader) -> dict[str, Any]:
+    from ..io import bev_metadata, bev_sensor
+
+    cam, c2v = bev_sensor(reader)
+    return bev_metadata(cam, c2v, origin="the ego body centre on the ground (sensors.json bev.camera_to_vehicle)")
+
+
+def write_dataset_files(reader, out_dir: str | os.PathLike, options: BuildOptions | None = None) -> list[Path]:
+    """Write the dataset-level files: ``dataset.json`` (`dataset_manifest`),
+    ``calibration_data/{camera}.json`` (the capture's calibration files, byte for byte),
+    ``calibration_data/BEV.json`` (BEV scale and axes) and
+    ``semantic_annotations/seg_annotation_info.json`` (classes and palette). Atomic, deterministic."""
+    from ..io import atomic_write_bytes, atomic_write_text, synwoodscape_palette_dict
+
+    options = options or BuildOptions()
+    out = Path(out_dir)
+    paths = []
+    for cam in reader.cameras:
+        src = reader.root / "calibration" / f"{cam}.json"
+        paths.append(atomic_write_bytes(out / "calibration_data" / f"{cam}.json", src.read_bytes()))
+    manifest = dataset_manifest(reader, out, options)
+    if manifest["conventions"]["bev"] is not None:
+        paths.append(atomic_write_text(out / "calibration_data" / f"{BEV_CAMERA}.json",
+                                       json.dumps(manifest["conventions"]["bev"], indent=1) + "\n"))
+    paths.append(atomic_write_text(out / "semantic_annotations" / "seg_annotation_info.json",
+                                   json.dumps(synwoodscape_palette_dict(), indent=1) + "\n"))
+    paths.append(atomic_write_text(out / "dataset.json", json.dumps(manifest, indent=1) + "\n"))
+    return paths

@@ -1,0 +1,47 @@
+"""``jaxfish build``: exit status, summary, resume, and a failing sample named with its file."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+from typer.testing import CliRunner
+
+from jaxfish.cli import app
+from jaxfish.cli._build import parse_frames
+from jaxfish.cli._demo import demo_config, demo_rig
+from jaxfish.io import synthesize_capture
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli_build") / "capture"
+    synthesize_capture(root, demo_rig(0.05), frames=2, seed=1, config=demo_config(0.05))
+    return root
+
+
+def test_build_writes_the_dataset_and_resumes(capture, tmp_path):
+    out = tmp_path / "dataset"
+    result = CliRunner().invoke(app, ["build", str(capture), str(out), "--frames", "0"])
+    assert result.exit_code == 0, result.output
+    assert "1 built, 0 already complete, 0 failed" in result.output
+    assert (out / "rgb_images" / "00000_FV.png").is_file() and (out / "dataset.json").is_file()
+    assert not (out / "rgb_images" / "00001_FV.png").exists()
+    again = CliRunner().invoke(app, ["build", str(capture), str(out), "--frames", "0"])
+    assert again.exit_code == 0 and "0 built, 1 already complete" in again.output
+
+
+def test_build_exits_1_and_names_the_broken_file(capture, tmp_path):
+    broken = tmp_path / "capture"
+    shutil.copytree(capture, broken)
+    (broken / "frames/000001/ego.json").write_text("{not json")
+    result = CliRunner().invoke(app, ["build", str(broken), str(tmp_path / "dataset")])
+    assert result.exit_code == 1, result.output
+    assert "1 built" in result.output and "1 failed" in result.output
+    assert "sample 00001 failed" in result.output and "ego.json" in result.output
+
+
+def test_build_rejects_bad_arguments(tmp_path):
+    r = CliRunner().invoke(app, ["build", str(tmp_path / "nope"), str(tmp_path / "out")])
+    assert r.exit_code == 2 and "not found" in r.output
+    assert parse_frames("0,2,5-7") == [0, 2, 5, 6, 7] and parse_frames(None) is None

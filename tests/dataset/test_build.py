@@ -1,0 +1,174 @@
+"""The dataset builder: a 2-sample build read back by a loader written from dataset.json alone, a
+crashed-and-resumed build and a dask build equal to the serial build byte for byte, and clear
+per-sample errors for missing or corrupt capture files."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import shutil
+import struct
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from jaxfish.dataset import LAYOUT, build_dataset, is_complete, sample_files
+
+SAMPLES = ("00000", "00001")
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _assert_same_tree(a: Path, b: Path) -> None:
+    ta, tb = _tree(a), _tree(b)
+    assert sorted(ta) == sorted(tb)
+    differ = [k for k in ta if ta[k] != tb[k]]
+    assert not differ, f"files differ: {differ[:10]}"
+
+
+# ------------------------------------------------------------------ a loader from dataset.json alone
+def _load(path: Path, fmt: str):
+    """Decode one file knowing only its format (as dataset.json states it)."""
+    if fmt == "png":
+        a = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        assert a is not None, path
+        return a[..., ::-1] if a.ndim == 3 else a  # cv2 is BGR
+    if fmt == "npy":
+        return np.load(path, allow_pickle=False)
+    if fmt == "npz":
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    if fmt == "flo":
+        raw = path.read_bytes()
+        tag, w, h = struct.unpack("<fii", raw[:12])
+        assert tag == 202021.25
+        return np.frombuffer(raw[12:], "<f4").reshape(h, w, 2)
+    if fmt == "pickle":
+        with open(path, "rb") as fh:
+            return pickle.load(fh)
+    if fmt == "csv":
+        return [line.split(",") for line in path.read_text().splitlines() if line.strip()]
+    if fmt == "json":
+        return json.loads(path.read_text())
+    if fmt == "text":
+        return path.read_text().splitlines()
+    raise AssertionError(f"unknown format {fmt}")
+
+
+def test_every_file_is_there_and_reads_back_from_the_layout_alone(reference_build):
+    out, report = reference_build
+    assert report.built == list(SAMPLES) and not report.failed
+    manifest = json.loads((out / "dataset.json").read_text())
+    assert manifest["samples"] == list(SAMPLES)
+    conv = manifest["conventions"]
+    assert conv["depth"]["sky_m"] == 1000.0 and "range" in conv["depth"]["raw_data"]
+    assert conv["optical_flow"]["direction"].startswith("forward") and "t-1" in conv["optical_flow"]["grid"]
+    assert conv["events"]["raw_data"]["time_unit"] == "ns" and conv["events"]["tonic"]["time_unit"] == "us"
+    assert conv["bev"]["metres_per_pixel"] > 0 and len(manifest["classes"]["names"]) == 25
+    sizes = {k: tuple(v) for k, v in manifest["image_size_wh"].items()}
+    fisheye, cams = manifest["fisheye_cameras"], manifest["cameras"]
+    assert fisheye == ["FV", "RV", "MVL", "MVR"] and cams == fisheye + ["BEV"]
+    per_cam = {"fisheye": fisheye, "all": cams, "BEV": ["BEV"], "sample": [None]}
+    seen = 0
+    for entry in manifest["layout"]:
+        for sample in manifest["samples"]:
+            for cam in per_cam[entry["cameras"]]:
+                path = out / entry["pattern"].format(sample=sample, camera=cam)
+                assert path.is_file(), path
+                data = _load(path, entry["format"])
+                seen += 1
+                if entry["format"] in ("png", "npy", "flo") and entry["shape"].startswith("(H, W"):
+                    w, h = sizes[cam]
+                    want = tuple(int(s) for s in entry["shape"].strip("()").replace("H", str(h)).replace("W", str(w)).split(","))
+                    assert data.shape == want, (path, data.shape, want)
+                    assert str(data.dtype) in entry["dtype"], (path, data.dtype, entry["dtype"])
+                if entry["key"] == "events":
+                    assert data.dtype.names == ("x", "y", "t", "pol") and np.all(np.diff(data["t"]) >= 0)
+                if entry["key"] == "boxes_3d":
+                    assert data and all(isinstance(k, int) and v.shape == (8, 3) and v.dtype == np.float64
+                                        for k, v in data.items())
+                if entry["key"] == "depth":
+                    assert data.max() <= 1000.0 and data.min() >= 0 and (cam == "BEV" or np.any(data == 1000.0))
+                if entry["key"] == "motion":
+                    assert set(np.unique(data)) <= {0, 255}
+                if entry["key"] == "lidar":
+                    assert data["points"].dtype == np.float32 and data["points"].shape[1] == 4
+    assert seen == 2 * len(sample_files("00000"))
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and p.parts[-2] != ".done"
+                  and not any(p.match(x) for x in ("dataset.json", "calibration_data/*", "*/seg_annotation_info.json"))
+                  ) == sorted(sample_files("00000") + sample_files("00001"))
+    assert len({e["key"] for e in LAYOUT}) == len(LAYOUT)
+    info = json.loads((out / "semantic_annotations/seg_annotation_info.json").read_text())
+    assert info["classes"] == manifest["classes"]["names"]
+    assert {p.name for p in (out / "calibration_data").iterdir()} == {"FV.json", "RV.json", "MVL.json", "MVR.json", "BEV.json"}
+
+
+def test_killed_build_resumes_to_the_same_bytes(small_capture, reference_build, tmp_path, monkeypatch):
+    out = tmp_path / "dataset"
+    real_replace = os.replace
+    calls = {"n": 0}
+
+    def crashing_replace(src, dst):
+        calls["n"] += 1
+        if calls["n"] > 60:  # the process "dies" in the middle of sample 0's files
+            raise KeyboardInterrupt("simulated kill")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", crashing_replace)
+    with pytest.raises(KeyboardInterrupt):
+        build_dataset(small_capture, out, options=None)
+    monkeypatch.setattr(os, "replace", real_replace)
+    assert not is_complete(out, "00000") and not (out / "dataset.json").exists()
+    stale = out / "rgb_images" / ".00000_FV.abcd1234.part.png"  # what a SIGKILL leaves behind
+    stale.parent.mkdir(parents=True, exist_ok=True)
+    stale.write_bytes(b"half a png")
+    report = build_dataset(small_capture, out)
+    assert report.ok and report.built == list(SAMPLES) and report.stale_removed >= 1
+    _assert_same_tree(reference_build[0], out)
+    again = build_dataset(small_capture, out)  # everything complete: nothing rebuilt
+    assert again.skipped == list(SAMPLES) and not again.built
+    _assert_same_tree(reference_build[0], out)
+
+
+def test_dask_local_cluster_build_equals_the_serial_build(small_capture, reference_build, tmp_path):
+    pytest.importorskip("distributed")
+    out = tmp_path / "dataset"
+    # Thread workers (processes=False): process workers give the same bytes but each would start and
+    # compile JAX afresh, too slow for a unit test (scripts/bench_build.py times them).
+    report = build_dataset(small_capture, out, workers=2, processes=False)
+    assert report.ok and sorted(report.built) == list(SAMPLES)
+    _assert_same_tree(reference_build[0], out)
+
+
+def _copy(capture: Path, tmp_path: Path, name: str) -> Path:
+    dst = tmp_path / name
+    shutil.copytree(capture, dst)
+    return dst
+
+
+def test_missing_or_corrupt_capture_files_fail_their_sample_only(small_capture, reference_build, tmp_path):
+    corrupt = _copy(small_capture, tmp_path, "corrupt")
+    bad = corrupt / "frames/000001/cameras/RV/left/rgb_curr.png"
+    bad.write_bytes(b"\x89PNG not really")
+    report = build_dataset(corrupt, tmp_path / "out_corrupt")
+    assert report.built == ["00000"] and list(report.failed) == ["00001"]
+    assert "rgb_curr.png" in report.failed["00001"] and "RV" in report.failed["00001"]
+    assert json.loads((tmp_path / "out_corrupt/dataset.json").read_text())["samples"] == ["00000"]
+    ref = reference_build[0]
+    for rel in sample_files("00000"):
+        assert (tmp_path / "out_corrupt" / rel).read_bytes() == (ref / rel).read_bytes(), rel
+
+    missing = _copy(small_capture, tmp_path, "missing")
+    (missing / "frames/000000/actors.json").unlink()
+    (missing / "frames/000001/cameras/MVL/top/dvs.npy").unlink()
+    report = build_dataset(missing, tmp_path / "out_missing", frames=[0, 1, 7])
+    assert not report.built and sorted(report.failed) == ["00000", "00001", "00007"]
+    assert "actors.json" in report.failed["00000"] and "file missing" in report.failed["00000"]
+    assert "MVL/top/dvs.npy" in report.failed["00001"]
+    assert "frame 7" in report.failed["00007"]
+    assert "failed" in report.summary() and "actors.json" in report.summary()
