@@ -21,6 +21,8 @@ import queue
 import random
 import sys
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from jaxfish import JaxfishError, default_rig, load_rig
@@ -334,36 +336,53 @@ def capture_weather(carla, client, args, weather: str, rig_file) -> Path:
         views = {"bev": (bev_pinhole(config, args.bev_altitude), raised.bev_camera_to_vehicle),
                  "front": (front_camera(config), raised.front_camera_to_vehicle)}
         start = time.monotonic()
-        for k in range(args.frames):
-            curr = session.tick(required, dvs)
-            write_frame_from_ticks(root, k, prev, curr, session, rig, config, views, tags)
-            prev = curr
-            rate = (k + 1) / max(time.monotonic() - start, 1e-9)
-            print(f"[{weather}] frame {k + 1}/{args.frames} written ({rate:.2f} frames/s)", flush=True)
+        # One writer thread: frame k is encoded and written while the server simulates the next ticks
+        # (one thread only, so that frames reach capture.json in order); at most two frames wait.
+        writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="capture-writer")
+        pending: deque = deque()
+        done = 0
+        try:
+            for k in range(args.frames):
+                curr = session.tick(required, dvs)
+                pending.append(writer.submit(frame_writer(root, k, prev, curr, session, rig, config, views, tags)))
+                prev = curr
+                while pending and (len(pending) > 2 or k == args.frames - 1):
+                    pending.popleft().result()  # re-raises a writing error here
+                    done += 1
+                    rate = done / max(time.monotonic() - start, 1e-9)
+                    print(f"[{weather}] frame {done}/{args.frames} written ({rate:.2f} frames/s)", flush=True)
+        finally:
+            writer.shutdown(wait=True)
     finally:
         session.destroy()
     return root
 
 
-def write_frame_from_ticks(root, k, prev, curr, session, rig, config, views, tags) -> None:
-    """Assemble frame ``k`` from the ticks t-1 (``prev``) and t (``curr``) and write it."""
+def frame_writer(root, k, prev, curr, session, rig, config, views, tags):
+    """Assemble frame ``k`` from the ticks t-1 (``prev``) and t (``curr``): the actor records are read
+    from the server now; the returned function converts and writes the frame (any thread)."""
     snap_p, snap_c = prev["snapshot"], curr["snapshot"]
     ego_id = session.ego.id
-    actors = list(session.world.get_actors().filter("vehicle.*")) + list(session.world.get_actors().filter("walker.pedestrian.*"))
+    world_actors = session.world.get_actors()
+    actors = list(world_actors.filter("vehicle.*")) + list(world_actors.filter("walker.pedestrian.*"))
     records = carla_actor_records(actors, snap_p, snap_c, ego_id=ego_id, tag_table=tags)
-    frame = carla_street_frame(k, snap_c.timestamp.elapsed_seconds, records, carla_ego_motion(snap_c.find(ego_id)), dt_s=DT_S,
-                         seed=session.args.seed)
-    faces = {cam: {f: (images(prev, ("camera", cam, f)), images(curr, ("camera", cam, f)), curr[("camera", cam, f, "dvs")])
-                   for f in config.faces} for cam in rig}
-    ego = records[0]
-    out_views = {}
-    for name, (camera, pose) in views.items():
-        c = images(curr, ("view", name))
-        height = height_from_depth(decode_depth(c.depth), camera, pose, ego.location, ego.rotation)
-        out_views[name] = (images(prev, ("view", name)), c, height)
-    write_carla_frame(root, frame, faces=faces, views=out_views, lidar=curr[("lidar",)],
-                      semantic_lidar=curr[("semantic_lidar",)], radar=curr[("radar",)], imu=curr[("imu",)],
-                      gnss=curr[("gnss",)])
+    frame = carla_street_frame(k, snap_c.timestamp.elapsed_seconds, records, carla_ego_motion(snap_c.find(ego_id)),
+                               dt_s=DT_S, seed=session.args.seed)
+
+    def write() -> None:
+        faces = {cam: {f: (images(prev, ("camera", cam, f)), images(curr, ("camera", cam, f)),
+                           curr[("camera", cam, f, "dvs")]) for f in config.faces} for cam in rig}
+        ego = records[0]
+        out_views = {}
+        for name, (camera, pose) in views.items():
+            c = images(curr, ("view", name))
+            height = height_from_depth(decode_depth(c.depth), camera, pose, ego.location, ego.rotation)
+            out_views[name] = (images(prev, ("view", name)), c, height)
+        write_carla_frame(root, frame, faces=faces, views=out_views, lidar=curr[("lidar",)],
+                          semantic_lidar=curr[("semantic_lidar",)], radar=curr[("radar",)], imu=curr[("imu",)],
+                          gnss=curr[("gnss",)], prev_from_frame=k - 1 if k > 0 else None)
+
+    return write
 
 
 def load_calibrations(directory: Path) -> dict:

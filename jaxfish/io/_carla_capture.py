@@ -23,6 +23,7 @@ import json
 import math
 import os
 import re
+import shutil
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -43,7 +44,7 @@ from ..scene import (
     StreetFrame,
 )
 from ..transforms import CARLA_TO_ISO, UNREAL_CAMERA_TO_OPENCV, Pose, carla_rotation_matrix
-from ._atomic import atomic_write_text
+from ._atomic import atomic_path, atomic_write_text
 from ._capture import _npy, frame_dir, write_frame
 from ._carla import CARLA_MAX_DEPTH_M, DVS_EVENT_DTYPE, decode_semantic, encode_instance
 from ._images import write_image
@@ -686,7 +687,7 @@ class CarlaImages:
     instance: np.ndarray | None = None
 
 
-def _write_raw_images(directory: Path, images: CarlaImages, instant: str, what: str) -> None:
+def _write_raw_images(directory: Path, images: CarlaImages, instant: str, what: str, reuse: Path | None = None) -> None:
     shape = None
     for kind in ("rgb", "depth", "semantic", "instance"):
         a = getattr(images, kind)
@@ -698,7 +699,12 @@ def _write_raw_images(directory: Path, images: CarlaImages, instant: str, what: 
         if shape is not None and a.shape != shape:
             raise CarlaCaptureError(f"{what}: {kind}_{instant} is {a.shape}, the rgb image {shape}")
         shape = a.shape
-        write_image(directory / f"{kind}_{instant}.png", a)
+        source = reuse / f"{kind}_curr.png" if reuse is not None else None
+        if source is not None and source.is_file():  # the same tick, already encoded: copy its bytes
+            with atomic_path(directory / f"{kind}_{instant}.png") as tmp:
+                shutil.copyfile(source, tmp)
+        else:
+            write_image(directory / f"{kind}_{instant}.png", a)
 
 
 def write_carla_frame(
@@ -712,23 +718,30 @@ def write_carla_frame(
     radar: np.ndarray,
     imu: Mapping[str, Any],
     gnss: Mapping[str, Any],
+    prev_from_frame: int | None = None,
 ) -> Path:
     """Write one CARLA frame in the capture layout: ``faces[camera][face] = (prev, curr, dvs events)``
     and ``views[name] = (prev, curr, height map at t)`` with raw BGRA images (written unchanged);
     lidar, radar, IMU, GNSS, ego and actors through `jaxfish.io.write_frame`, which lists the frame
-    in ``capture.json`` last (a frame is listed only once complete)."""
+    in ``capture.json`` last (a frame is listed only once complete).
+
+    ``prev_from_frame``: a frame already written whose t is this frame's t-1 (consecutive ticks): its
+    ``*_curr.png`` files are copied as this frame's ``*_prev.png`` instead of encoding the same
+    pixels again (half the PNG encoding of a sequence); the caller guarantees they are the same tick."""
     d = frame_dir(root, frame.frame)
+    before = frame_dir(root, prev_from_frame) if prev_from_frame is not None else None
     for cam, per_face in faces.items():
         for face, (prev, curr, events) in per_face.items():
             fd = d / "cameras" / cam / face
-            _write_raw_images(fd, prev, "prev", f"{cam}/{face}")
+            _write_raw_images(fd, prev, "prev", f"{cam}/{face}",
+                              before / "cameras" / cam / face if before is not None else None)
             _write_raw_images(fd, curr, "curr", f"{cam}/{face}")
             ev = np.asarray(events)
             if ev.dtype != DVS_EVENT_DTYPE:
                 raise CarlaCaptureError(f"{cam}/{face}: DVS events must have DVS_EVENT_DTYPE, got {ev.dtype}")
             _npy(fd / "dvs.npy", ev)
     for name, (prev, curr, height) in views.items():
-        _write_raw_images(d / name, prev, "prev", name)
+        _write_raw_images(d / name, prev, "prev", name, before / name if before is not None else None)
         _write_raw_images(d / name, curr, "curr", name)
         hm = np.asarray(height, np.float32)
         if hm.shape != curr.rgb.shape[:2]:

@@ -664,6 +664,10 @@ def test_the_program_on_a_fake_carla(script, tmp_path, monkeypatch, capsys):
     assert face.rgb.shape == (8, 8, 3) and (face.semantic == 7).all() and not face.actor_id.any()
     np.testing.assert_allclose(face.depth_m, 12.5, atol=1e-4)
     assert reader.face(1, "FV", "top", "curr").rgb[0, 0, 2] == reader.face(1, "FV", "top", "prev").rgb[0, 0, 2] + 1
+    for sub in ("cameras/FV/right", "bev", "front"):  # frame 1's t-1 is frame 0's t: copied, not re-encoded
+        for kind in ("rgb", "depth", "semantic", "instance"):
+            a, b = (out / "WetSunset" / "frames" / f"{k:06d}" / sub / f"{kind}_{i}.png" for k, i in ((0, "curr"), (1, "prev")))
+            assert a.read_bytes() == b.read_bytes()
     dvs = [reader.dvs(k, "FV", "left") for k in (0, 1)]
     assert sorted(d.size for d in dvs) == [0, 3] and all(d.dtype == DVS_EVENT_DTYPE for d in dvs)
     actors = reader.actors(1)
