@@ -99,10 +99,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--iso", type=float, default=100.0, help="fixed exposure: ISO")
     p.add_argument("--fstop", type=float, default=1.4, help="fixed exposure: f-number")
     p.add_argument("--exposure-compensation", type=float, default=0.0, help="fixed exposure: compensation (EV)")
-    p.add_argument("--out", type=Path, required=True, help="output directory (one capture per weather preset)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print every sensor (blueprint, mount, attributes) and exit, without a server")
+    p.add_argument("--carla-version", default="0.9.15", help="the CARLA release --dry-run assumes")
+    p.add_argument("--out", type=Path, default=None, help="output directory (one capture per weather preset); required "
+                                                          "unless --dry-run")
     args = p.parse_args(argv)
     if args.frames <= 0 or args.face_size <= 0 or args.vehicles < 0 or args.walkers < 0 or args.warmup < 1:
         p.error("--frames, --face-size, --warmup must be positive; --vehicles, --walkers non-negative")
+    if args.out is None and not args.dry_run:
+        p.error("--out is required (unless --dry-run)")
     return args
 
 
@@ -301,13 +307,36 @@ def vehicle_origin(args, rig, ego) -> tuple[float, float, float]:
     return rear_axle_origin(wheels, carla_transform_tuple(ego.get_transform()))
 
 
+def capture_config(args) -> CaptureConfig:
+    """The `CaptureConfig` of the command line (sizes; the other sensor settings are jaxfish's defaults)."""
+    return CaptureConfig(face_size=args.face_size, bev_size=args.bev_size, bev_metres_per_pixel=args.bev_metres_per_pixel,
+                         front_width=args.front_size[0], front_height=args.front_size[1])
+
+
+def capture_exposure(args) -> CarlaExposure:
+    """The fixed exposure of the command line."""
+    return CarlaExposure(args.shutter_speed, args.iso, args.fstop, args.exposure_compensation)
+
+
+def dry_run(args, rig) -> None:
+    """Print every sensor the capture would attach (blueprint, mount, attributes) for
+    ``--carla-version``, without a server; the rig as given (vehicle origin: the actor's)."""
+    config = capture_config(args)
+    specs = capture_sensor_specs(rig, config, sensor_mounts(rig, config), carla_version=args.carla_version,
+                                 bev_altitude_m=args.bev_altitude, exposure=capture_exposure(args))
+    print(f"{len(specs)} sensors for CARLA {args.carla_version} (tags {carla_semantic_tags(args.carla_version)}):")
+    for spec in specs:
+        loc = ", ".join(f"{v:.3f}" for v in spec.mount.location)
+        rot = ", ".join(f"{v:.2f}" for v in spec.mount.rotation)
+        attrs = " ".join(f"{k}={v}" for k, v in spec.attributes.items())
+        print(f"{'/'.join(spec.key):28s} {spec.blueprint:38s} location ({loc}) rotation ({rot}) {attrs}")
+
+
 def capture_weather(carla, client, args, weather: str, rig_file) -> Path:
     """Spawn everything, capture ``args.frames`` frames under ``weather`` into ``OUT/weather``."""
     version = client.get_server_version()
     tags = carla_semantic_tags(version)
-    config = CaptureConfig(face_size=args.face_size, bev_size=args.bev_size, bev_metres_per_pixel=args.bev_metres_per_pixel,
-                           front_width=args.front_size[0], front_height=args.front_size[1])
-    exposure = CarlaExposure(args.shutter_speed, args.iso, args.fstop, args.exposure_compensation)
+    config, exposure = capture_config(args), capture_exposure(args)
     root = args.out / weather
     session = Session(carla, client, args)
     rng = random.Random(args.seed)
@@ -399,6 +428,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         weathers = validate_weather(args.weather or ["ClearNoon"])
         rig = load_calibrations(args.calibration) if args.calibration else default_rig()
+        if args.dry_run:
+            parse_carla_version(args.carla_version)
+            dry_run(args, rig)
+            return 0
         carla = import_carla()
         validate_weather(weathers, carla=carla)
         client = carla.Client(args.host, args.port)

@@ -705,3 +705,14 @@ def test_vehicle_origin_option(script):
     no_wheels = SimpleNamespace(get_physics_control=lambda: SimpleNamespace(wheels=[SimpleNamespace(location=1)]))
     with pytest.raises(CarlaCaptureError, match="wheel positions"):
         script.vehicle_origin(SimpleNamespace(vehicle_origin="auto"), rig, no_wheels)
+
+
+def test_dry_run_lists_the_sensors_without_a_server(script, capsys, monkeypatch):
+    monkeypatch.setattr(script, "import_carla", lambda: pytest.fail("a dry run must not import carla"))
+    assert script.main(["--dry-run", "--carla-version", "0.9.14", "--face-size", "16"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "113 sensors for CARLA 0.9.14 (tags 0.9.14):" and len(lines) == 114  # 4 x 5 x 5 + 2 x 4 + 5
+    assert any(line.startswith("camera/MVL/top/instance") and "image_size_x=16" in line for line in lines)
+    assert script.main(["--dry-run", "--carla-version", "0.9.9"]) == 2
+    with pytest.raises(SystemExit):
+        script.parse_args(["--frames", "3"])  # --out is required for a capture
