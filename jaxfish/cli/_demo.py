@@ -14,13 +14,14 @@ from ._app import app, console, fail
 
 def demo_config(scale: float):
     """The capture settings of the demo at ``scale`` (1 = SynWoodScape's sizes: fisheye 1280 x 966,
-    BEV 1024 px; faces just large enough not to undersample the fisheye)."""
+    BEV 1024 px at 0.04 m per pixel; faces just large enough not to undersample the fisheye). The
+    BEV keeps its ground coverage (metres per pixel grow as its size shrinks)."""
     from ..scene import CaptureConfig
 
     face = max(16, round(768 * scale))
     bev = max(16, round(1024 * scale))
     front = max(16, round(1632 * scale))
-    return CaptureConfig(face_size=face, bev_size=bev, front_width=front, front_height=max(12, round(front * 3 / 4)),
+    return CaptureConfig(face_size=face, bev_size=bev, bev_metres_per_pixel=0.04 * 1024 / bev, front_width=front, front_height=max(12, round(front * 3 / 4)),
                          lidar_channels=32 if scale >= 0.5 else 8, lidar_points_per_channel=1024 if scale >= 0.5 else 128,
                          radar_points=150 if scale >= 0.5 else 32, dvs_substeps=4 if scale >= 0.5 else 2)
 

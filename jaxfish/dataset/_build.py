@@ -93,8 +93,9 @@ _CACHE: dict[Any, Any] = {}
 _CACHE_LOCK = threading.Lock()
 
 
-def _file_key(path: Path) -> tuple[str, str]:
-    return str(path.resolve()), hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else ""
+def _file_key(path: Path) -> str:
+    """Content hash of a file: constants depend on what a calibration says, not where it lives."""
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else ""
 
 
 def _camera_constants(reader, camera: str):

@@ -9,15 +9,12 @@ from typer.testing import CliRunner
 
 from jaxfish.cli import app
 from jaxfish.cli._build import parse_frames
-from jaxfish.cli._demo import demo_config, demo_rig
-from jaxfish.io import synthesize_capture
+from tests.dataset.small_capture import small_capture_dir
 
 
 @pytest.fixture(scope="module")
-def capture(tmp_path_factory):
-    root = tmp_path_factory.mktemp("cli_build") / "capture"
-    synthesize_capture(root, demo_rig(0.05), frames=2, seed=1, config=demo_config(0.05))
-    return root
+def capture():
+    return small_capture_dir()
 
 
 def test_build_writes_the_dataset_and_resumes(capture, tmp_path):

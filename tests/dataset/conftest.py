@@ -5,18 +5,14 @@ from __future__ import annotations
 
 import pytest
 
-from jaxfish.cli._demo import demo_config, demo_rig
 from jaxfish.dataset import build_dataset
-from jaxfish.io import synthesize_capture
 
-SCALE = 0.05
+from .small_capture import small_capture_dir
 
 
 @pytest.fixture(scope="session")
-def small_capture(tmp_path_factory):
-    root = tmp_path_factory.mktemp("dataset_capture") / "capture"
-    synthesize_capture(root, demo_rig(SCALE), frames=2, seed=1, config=demo_config(SCALE))
-    return root
+def small_capture():
+    return small_capture_dir()
 
 
 @pytest.fixture(scope="session")
