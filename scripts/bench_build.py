@@ -1,0 +1,116 @@
+"""Benchmark: the dataset builder on a full-size one-sample capture (4 fisheyes 1280 x 966 from
+768 px cube faces + BEV 1024 x 1024, all modalities, I/O included).
+
+Measures, after compilation: the serial rate (samples/s, the median of ``--repeat`` rebuilds into
+fresh directories), the peak resident memory of the process (``resource.getrusage``), and the rate
+of dask ``LocalCluster`` builds with 1 and 2 single-threaded process workers (each worker warms up
+on the sample first; then ``2 x workers`` builds of the sample run as separate tasks).
+
+    uv run python scripts/bench_build.py                    # renders the capture first (minutes)
+    uv run python scripts/bench_build.py --capture out/cap  # reuse a full-size capture
+
+Goal: >= 1 sample/s after compile, peak < 4 GB. Measured on the 2-core CPU (shared with other
+jobs, load ~4): see docs/dataset.md "Speed" and the report printed by this script.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import shutil
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _warm(capture: str, scratch: str) -> float:
+    import os
+
+    from jaxfish.dataset import build_sample
+
+    start = time.perf_counter()
+    build_sample(capture, os.path.join(scratch, f"warm-{os.getpid()}"), 0)
+    return time.perf_counter() - start
+
+
+def _task(capture: str, out: str) -> float:
+    from jaxfish.dataset import build_sample
+
+    start = time.perf_counter()
+    build_sample(capture, out, 0)
+    return time.perf_counter() - start
+
+
+def _worker_peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def bench_dask(capture: Path, scratch: Path, workers: int) -> tuple[float, float, list[float]]:
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        warm = client.run(_warm, str(capture), str(scratch / f"dask{workers}"))
+        n = 2 * workers
+        start = time.perf_counter()
+        futures = [client.submit(_task, str(capture), str(scratch / f"dask{workers}" / f"run{i}"), pure=False)
+                   for i in range(n)]
+        client.gather(futures)
+        rate = n / (time.perf_counter() - start)
+        peaks = list(client.run(_worker_peak_mb).values())
+    return rate, max(warm.values()), peaks
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--capture", type=Path, default=None, help="full-size capture with frame 0 (rendered if absent)")
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--no-dask", action="store_true")
+    args = parser.parse_args()
+    scratch = Path(tempfile.mkdtemp(prefix="jaxfish_bench_build_"))
+    try:
+        capture = args.capture
+        if capture is None or not (capture / "capture.json").is_file():
+            from jaxfish import default_rig
+            from jaxfish.io import synthesize_capture
+
+            capture = capture or scratch / "capture"
+            t = time.perf_counter()
+            synthesize_capture(capture, default_rig(), frames=1, seed=0)
+            print(f"rendered the full-size capture in {time.perf_counter() - t:.1f} s")
+        from jaxfish.dataset import build_dataset
+
+        t = time.perf_counter()
+        first = build_dataset(capture, scratch / "first", frames=[0])
+        assert first.ok, first.summary()
+        compile_s = time.perf_counter() - t
+        times = []
+        for i in range(args.repeat):
+            t = time.perf_counter()
+            rep = build_dataset(capture, scratch / f"run{i}", frames=[0])
+            times.append(time.perf_counter() - t)
+            assert rep.ok, rep.summary()
+            shutil.rmtree(scratch / f"run{i}")
+        med = statistics.median(times)
+        files = sum(1 for p in (scratch / "first").rglob("*") if p.is_file())
+        size_mb = sum(p.stat().st_size for p in (scratch / "first").rglob("*") if p.is_file()) / 2**20
+        print(f"serial: first sample (compile included) {compile_s:.1f} s; after compile {med:.2f} s per sample "
+              f"= {1 / med:.2f} samples/s (runs: {', '.join(f'{x:.2f}' for x in times)} s); "
+              f"{files} files, {size_mb:.0f} MB per sample")
+        print(f"peak memory (this process): {_peak_mb():.0f} MB")
+        if not args.no_dask:
+            for n in (1, 2):
+                rate, warm_s, peaks = bench_dask(capture, scratch, n)
+                print(f"dask LocalCluster, {n} process worker(s): {rate:.2f} samples/s after warm-up "
+                      f"(warm-up {warm_s:.1f} s); worker peak memory {', '.join(f'{p:.0f}' for p in peaks)} MB")
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
