@@ -145,6 +145,7 @@ class Session:
         bp = found[0]
         if bp.has_attribute("role_name"):
             bp.set_attribute("role_name", "hero")
+        random_color(bp, rng)
         points = self.world.get_map().get_spawn_points()
         rng.shuffle(points)
         for sp in points:
@@ -165,6 +166,7 @@ class Session:
             bp = rng.choice(bps)
             if bp.has_attribute("role_name"):
                 bp.set_attribute("role_name", "autopilot")
+            random_color(bp, rng)
             batch.append(carla.command.SpawnActor(bp, sp).then(
                 carla.command.SetAutopilot(carla.command.FutureActor, True, self.args.tm_port)))
         for r in self.client.apply_batch_sync(batch, True):
@@ -269,6 +271,14 @@ class Session:
         if self.tm is not None:
             self.tm.set_synchronous_mode(False)
         self.world.apply_settings(self.original_settings)
+
+
+def random_color(blueprint, rng: random.Random) -> None:
+    """A random recommended colour for a vehicle blueprint (as SynWoodScape's random ego colour)."""
+    if blueprint.has_attribute("color"):
+        values = list(blueprint.get_attribute("color").recommended_values)
+        if values:
+            blueprint.set_attribute("color", rng.choice(values))
 
 
 def convert(key: tuple, item):

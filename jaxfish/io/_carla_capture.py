@@ -63,10 +63,10 @@ CARLA_LATER_WEATHER_PRESETS: tuple[str, ...] = (
     "ClearNight", "CloudyNight", "WetNight", "WetCloudyNight", "SoftRainNight", "MidRainyNight",
     "HardRainNight", "DustStorm",
 )
-#: SynWoodScape's nine presets (the paper's "9 weather presets"): noon and sunset variants.
+#: The nine presets SynWoodScape was captured with (the paper's list, Town10HD, CARLA 0.9.10.1).
 SYNWOODSCAPE_WEATHER_PRESETS: tuple[str, ...] = (
-    "ClearNoon", "CloudyNoon", "WetNoon", "WetCloudyNoon", "SoftRainNoon", "MidRainyNoon", "HardRainNoon",
-    "ClearSunset", "CloudySunset",
+    "ClearNoon", "ClearSunset", "CloudyNoon", "CloudySunset", "Default", "WetCloudyNoon", "WetCloudySunset",
+    "WetNoon", "WetSunset",
 )
 #: Blueprint ids of CARLA's camera sensors by image kind (``instance`` exists from 0.9.14 on).
 CAMERA_BLUEPRINTS: dict[str, str] = {

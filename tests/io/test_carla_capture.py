@@ -516,7 +516,7 @@ class _World:
         names = ["image_size_x", "image_size_y", "fov", "sensor_tick", "exposure_mode", "shutter_speed", "iso",
                  "fstop", "motion_blur_intensity", "positive_threshold", "negative_threshold", "channels", "range",
                  "points_per_second", "rotation_frequency", "upper_fov", "lower_fov", "horizontal_fov", "vertical_fov",
-                 "role_name", "speed", "is_invincible"]  # no lens_flare_intensity etc.: an older release
+                 "role_name", "speed", "is_invincible", "color"]  # no lens_flare_intensity etc.: an older release
         self.library = {b: _Blueprint(b, names) for b in
                         ["sensor.camera.rgb", "sensor.camera.depth", "sensor.camera.semantic_segmentation",
                          "sensor.camera.instance_segmentation", "sensor.camera.dvs", "sensor.lidar.ray_cast",
