@@ -100,7 +100,7 @@ def _dataset_items(source: Path, samples: str | None):
     names = [n for n in FISHEYES if (cal / f"{n}.json").is_file()]
     if len(names) != len(FISHEYES):
         raise JaxfishError(f"{cal}: needs {', '.join(f'{n}.json' for n in FISHEYES)} (found {names})")
-    calibs = [load_calibration(cal / f"{n}.json") for n in names]
+    calibs = [load_calibration(cal / f"{n}.json").astype(np.float32) for n in names]
     cam, pose = load_bev_calibration(cal / "BEV.json")
     depth_dir = source / "depth_maps" / "raw_data"
     ids = sorted(p.stem[: -len("_FV")] for p in depth_dir.glob("*_FV.npy"))
@@ -151,14 +151,6 @@ def bev(
     samples: str | None = typer.Option(None, "--samples", help="Dataset sample ids, e.g. '00000,00003' (default: all)."),
 ) -> None:
     """True top view, camera-fused top view and IPM baseline of a capture or a built dataset, with mIoU."""
-    import jax
-    import numpy as np
-    from rich.table import Table
-
-    from .. import bev as jbev
-    from ..groundtruth import SYNWOODSCAPE_CLASSES
-    from ..io import bev_metadata
-
     if (source / "capture.json").is_file():
         items = _capture_items(source, frames)
         kind = "capture"
@@ -169,9 +161,38 @@ def bev(
         kind = "dataset"
     else:
         raise fail(f"{source}: neither a capture (capture.json) nor a built dataset (calibration_data/)")
-    fuse = jax.jit(lambda c, p, r, s, v, b, bp, ry: jbev.fuse_cameras(c, p, r, s, b, bp, valid=v, rays=ry))
-    ipm = jax.jit(lambda c, p, s, v, b, bp: jbev.ipm_semantics(c, p, s, b, bp, valid=v))
-    iou = jax.jit(lambda p, t: jbev.semantic_iou(p, t, num_classes=len(SYNWOODSCAPE_CLASSES)))
+    from .._errors import JaxfishError
+
+    try:
+        per_sample, pooled = _run(items, out, kind)
+    except JaxfishError as e:
+        raise fail(str(e)) from None
+    _report(source, kind, out, per_sample, pooled)
+
+
+_IOU: list = []
+
+
+def _iou():
+    """mIoU over the SynWoodScape classes, compiled once per process (shared by every call)."""
+    import jax
+
+    from .. import bev as jbev
+    from ..groundtruth import SYNWOODSCAPE_CLASSES
+
+    if not _IOU:
+        _IOU.append(jax.jit(lambda p, t: jbev.semantic_iou(p, t, num_classes=len(SYNWOODSCAPE_CLASSES))))
+    return _IOU[0]
+
+
+def _run(items, out: Path, kind: str):
+    import jax
+    import numpy as np
+
+    from .. import bev as jbev
+    from ..io import bev_metadata
+
+    iou = _iou()
     rays = None
     per_sample = []
     pooled = {"fused": [], "ipm": []}
@@ -180,10 +201,13 @@ def bev(
             status.update(f"{kind} sample {sid}: fusing {len(maps['names'])} cameras")
             cams = jbev.stack_cameras(maps["cameras"])
             poses = jbev.stack_poses(maps["cameras_to_vehicle"])
+            if rays is None and "rays" in maps:
+                rays = tuple(np.stack([np.asarray(maps["rays"][n][k]) for n in maps["names"]]) for k in (0, 1))
             if rays is None:
                 rays = jax.jit(jbev.rig_rays)(cams)
-            f = fuse(cams, poses, maps["range_m"], maps["semantic"], maps["valid"], cam, pose, rays)
-            i = ipm(cams, poses, maps["semantic"], maps["valid"], cam, pose)
+            # fuse_cameras / ipm_semantics compile their kernels once per shape themselves
+            f = jbev.fuse_cameras(cams, poses, maps["range_m"], maps["semantic"], cam, pose, valid=maps["valid"], rays=rays)
+            i = jbev.ipm_semantics(cams, poses, maps["semantic"], cam, pose, valid=maps["valid"])
             meta = bev_metadata(cam, pose, sample=sid)
             _write_view(out / "fused", sid, meta, f.semantic, f.height_m, f.occupancy)
             _write_view(out / "ipm", sid, meta, i.semantic)
@@ -196,6 +220,16 @@ def bev(
                     row[f"miou_{name}"] = float(s.mean_iou)
                     pooled[name].append((np.asarray(s.intersection), np.asarray(s.union)))
             per_sample.append(row)
+    return per_sample, pooled
+
+
+def _report(source: Path, kind: str, out: Path, per_sample: list, pooled: dict) -> None:
+    import numpy as np
+    from rich.table import Table
+
+    from ..groundtruth import SYNWOODSCAPE_CLASSES
+    from ..io import atomic_write_text
+
     table = Table(title=f"BEV mIoU vs the true top view ({kind})")
     for col in ("sample", "fused mIoU", "IPM mIoU", "cells observed by fusion"):
         table.add_column(col)
@@ -226,7 +260,5 @@ def bev(
         scores["miou"] = means
     else:
         console.print("no true top view found: wrote the fused and IPM views only", highlight=False)
-    from ..io import atomic_write_text
-
     atomic_write_text(out / "scores.json", json.dumps(scores, indent=1) + "\n")
     console.print(f"wrote {len(per_sample)} sample(s) to {out}", highlight=False)

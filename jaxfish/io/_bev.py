@@ -276,18 +276,21 @@ def _split_classes(world, base, centre, rot, half, cls, margin_m):
     return jnp.where(vehicle_like & hit, box_cls, base)
 
 
-def _camera_maps_kernel(lut, cam, rays, c2w, rgb, depth, tag, centre, rot, half, cls, margin_m):
+def _camera_maps_kernel(lut, cam, rays, c2w, depth, tag, centre, rot, half, cls, margin_m):
     import jax.numpy as jnp
 
     from .. import groundtruth as gt
+    from ..reprojection import resample_depth, resample_nearest
 
-    img = gt.fisheye_images(lut, rgb, depth, tag)
-    pts, ok = gt.pixel_points(cam, img.range_m, dtype=jnp.float32, rays=rays)
+    # as `jaxfish.groundtruth.fisheye_images`, without the RGB
+    rng, valid = resample_depth(depth.astype(jnp.float32), lut, far_m=gt.FAR_RANGE_M)
+    tags, _ = resample_nearest(tag, lut, reduce="centre")
+    pts, ok = gt.pixel_points(cam, rng, dtype=jnp.float32, rays=rays)
     world = gt.apply_pose(c2w, pts)
-    base = gt.carla_to_synwoodscape(img.tag)
+    base = gt.carla_to_synwoodscape(tags.astype(jnp.int32))
     sem = _split_classes(world, base, centre, rot, half, cls, margin_m)
-    valid = img.valid & ok
-    return img.range_m, jnp.where(valid, sem, -1), valid
+    valid = valid & ok
+    return rng, jnp.where(valid, sem, -1), valid
 
 
 def capture_camera_maps(reader, frame: int, *, luts: Mapping[str, Any] | None = None,
@@ -296,8 +299,8 @@ def capture_camera_maps(reader, frame: int, *, luts: Mapping[str, Any] | None = 
     `jaxfish.bev.fuse_cameras` and `jaxfish.bev.ipm_semantics`, lighter than the full
     `capture_ground_truth` (no flow, instances or events).
 
-    Per camera the cube faces are resampled to the fisheye (`jaxfish.groundtruth.fisheye_images`:
-    range along the ray, CARLA tag); tags become SynWoodScape classes, and vehicle pixels whose 3D
+    Per camera the cube faces' depth and tags are resampled to the fisheye as
+    `jaxfish.groundtruth.fisheye_images` does (range along the ray, CARLA tag); tags become SynWoodScape classes, and vehicle pixels whose 3D
     point lies in a two-wheeler or the ego box (grown by ``margin_m``) take that box's class (21,
     24), as in the full ground truth. ``luts`` / ``rays`` (per camera name: `Lut`, `pixel_rays`)
     are per-calibration constants, built here when absent. Returns ``{"names", "cameras",
@@ -345,8 +348,8 @@ def capture_camera_maps(reader, frame: int, *, luts: Mapping[str, Any] | None = 
         if name not in rays:
             rays[name] = _jit_rays()(cam)
         c2w = gt.camera_to_world(v2w, calib.camera_to_vehicle)
-        r, s, v = kernel(luts[name], cam, rays[name], c2w, jnp.asarray(stack.rgb), jnp.asarray(stack.depth_m),
-                         jnp.asarray(stack.semantic), centre, rot, half, cls, float(margin_m))
+        r, s, v = kernel(luts[name], cam, rays[name], c2w, jnp.asarray(stack.depth_m), jnp.asarray(stack.semantic),
+                         centre, rot, half, cls, float(margin_m))
         cams.append(cam)
         poses.append(calib.camera_to_vehicle)
         rng.append(np.asarray(r))
@@ -378,5 +381,5 @@ def _jit_camera_maps():
     import jax
 
     if not _KERNEL:
-        _KERNEL.append(jax.jit(_camera_maps_kernel, static_argnums=(11,)))
+        _KERNEL.append(jax.jit(_camera_maps_kernel, static_argnums=(10,)))
     return _KERNEL[0]

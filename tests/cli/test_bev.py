@@ -1,0 +1,97 @@
+"""``jaxfish bev`` on a capture and on a built SynWoodScape-layout sample (both of the analytic BEV
+scene): files, metadata, scores, and clear errors."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import jaxfish as jf
+from jaxfish import bev
+from jaxfish.cli import app
+from jaxfish.io import bev_metadata, read_bev_metadata, read_label_png, write_label_png
+from tests.bev.conftest import render
+from tests.bev.small_capture import BEV_MPP, BEV_SIZE, CAM_H, CAM_W, write_bev_capture
+
+VIEW_FILES = ("semantic.png", "semantic_color.png", "height.npy", "height.png", "occupancy.png")
+
+
+def test_bev_on_a_capture(tmp_path):
+    cap = write_bev_capture(tmp_path / "cap")
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["bev", str(cap), "--out", str(out), "--frames", "0"])
+    assert result.exit_code == 0, result.output
+    assert "fused mIoU" in result.output and "IPM mIoU" in result.output and "road" in result.output
+    for view in ("truth", "fused"):
+        for name in VIEW_FILES:
+            assert (out / view / f"00000_{name}").is_file(), (view, name)
+    assert (out / "ipm" / "00000_semantic_color.png").is_file()
+    meta = read_bev_metadata(out / "fused" / "00000_semantic.png")
+    assert meta["metres_per_pixel"] == pytest.approx(BEV_MPP) and meta["width"] == BEV_SIZE
+    scores = json.loads((out / "scores.json").read_text())
+    assert set(scores["miou"]) == {"fused", "ipm"} and 0.0 < scores["miou"]["fused"] <= 1.0
+    assert scores["samples"][0]["sample"] == "00000" and "vehicle" in scores["per_class_iou"]["fused"]
+    truth = read_label_png(out / "truth" / "00000_semantic.png")
+    assert {7, 8, 10}.issubset(set(np.unique(truth).tolist()))
+    bad = CliRunner().invoke(app, ["bev", str(cap), "--out", str(out), "--frames", "3"])
+    assert bad.exit_code == 2 and "not in the capture" in bad.output.replace("\n", "")
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    """A built sample ``00007``: the four fisheyes' range and class maps, calibrations, BEV.json and
+    the true top view, all of the analytic scene."""
+    root = tmp_path_factory.mktemp("dataset")
+    rig = jf.default_rig(width=CAM_W, height=CAM_H, dtype=jnp.float32)
+    rays, oks = jax.jit(bev.rig_rays)(bev.stack_cameras([c.camera for c in rig.values()]))
+    for (name, calib), ray, ok in zip(rig.items(), rays, oks, strict=True):
+        jf.save_calibration(calib, root / "calibration_data" / f"{name}.json")
+        r = np.asarray(calib.camera_to_vehicle.rotation_matrix, np.float64)
+        rng, cls = render(np.asarray(ray, np.float64) @ r.T, np.asarray(calib.camera_to_vehicle.translation, np.float64))
+        (root / "depth_maps" / "raw_data").mkdir(parents=True, exist_ok=True)
+        np.save(root / "depth_maps" / "raw_data" / f"00007_{name}.npy", np.where(ok, rng, 0.0).astype(np.float32))
+        write_label_png(root / "semantic_annotations" / "gtLabels" / f"00007_{name}.png", np.where(ok, cls, 0))
+    cam = jf.Orthographic(BEV_MPP, width=BEV_SIZE, height=BEV_SIZE, dtype=jnp.float32)
+    pose = jf.Pose(np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]), np.array([1.3, 0.0, 50.0]),
+                   dtype=jnp.float32)
+    (root / "calibration_data" / "BEV.json").write_text(json.dumps(bev_metadata(cam, pose)))
+    ground = np.asarray(jax.jit(bev.bev_ground_points)(cam, pose), np.float64) + np.array([0.0, 0.0, 50.0])
+    _, top = render(np.broadcast_to([0.0, 0.0, -1.0], ground.shape), ground)
+    write_label_png(root / "semantic_annotations" / "gtLabels" / "00007_BEV.png", top)
+    return root, rig, cam, pose
+
+
+def test_bev_on_a_built_sample(dataset, tmp_path):
+    root, rig, cam, pose = dataset
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["bev", str(root), "--out", str(out), "--samples", "00007"])
+    assert result.exit_code == 0, result.output
+    names = ("FV", "MVL", "MVR", "RV")
+    rng = np.stack([np.load(root / "depth_maps" / "raw_data" / f"00007_{n}.npy") for n in names])
+    sem = np.stack([read_label_png(root / "semantic_annotations" / "gtLabels" / f"00007_{n}.png") for n in names])
+    direct = bev.fuse_cameras([rig[n].camera for n in names], [rig[n].camera_to_vehicle for n in names],
+                                       rng, sem, cam, pose, valid=rng > 0)
+    written = read_label_png(out / "fused" / "00007_semantic.png")
+    np.testing.assert_array_equal(np.where(written == 255, -1, written), np.asarray(direct.semantic))
+    np.testing.assert_array_equal(np.load(out / "fused" / "00007_height.npy"), np.asarray(direct.height_m))
+    scores = json.loads((out / "scores.json").read_text())
+    assert scores["kind"] == "dataset" and 0.0 < scores["miou"]["ipm"] <= 1.0
+
+
+def test_bev_errors_name_the_file(dataset, tmp_path):
+    root, *_ = dataset
+    result = CliRunner().invoke(app, ["bev", str(tmp_path), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2 and "neither a capture" in result.output.replace("\n", "")
+    result = CliRunner().invoke(app, ["bev", str(root), "--out", str(tmp_path / "o"), "--samples", "00008"])
+    assert result.exit_code == 2 and "00008" in result.output.replace("\n", "")
+    (root / "depth_maps" / "raw_data" / "00007_MVR.npy").rename(tmp_path / "moved.npy")
+    try:
+        result = CliRunner().invoke(app, ["bev", str(root), "--out", str(tmp_path / "o")])
+        assert result.exit_code == 2 and "00007_MVR.npy" in result.output.replace("\n", "")
+    finally:
+        (tmp_path / "moved.npy").rename(root / "depth_maps" / "raw_data" / "00007_MVR.npy")
