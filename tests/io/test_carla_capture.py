@@ -716,3 +716,15 @@ def test_dry_run_lists_the_sensors_without_a_server(script, capsys, monkeypatch)
     assert script.main(["--dry-run", "--carla-version", "0.9.9"]) == 2
     with pytest.raises(SystemExit):
         script.parse_args(["--frames", "3"])  # --out is required for a capture
+
+
+def test_carla_is_imported_only_when_a_capture_runs():
+    import ast
+    import inspect
+
+    import jaxfish.io._carla_capture as module
+
+    tree = ast.parse(inspect.getsource(module))
+    top = [n for n in tree.body if isinstance(n, ast.Import | ast.ImportFrom)]
+    names = [a.name for n in top if isinstance(n, ast.Import) for a in n.names] + [n.module or "" for n in top if isinstance(n, ast.ImportFrom)]
+    assert not [n for n in names if n.split(".")[0] == "carla"]
