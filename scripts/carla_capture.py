@@ -121,7 +121,8 @@ class Session:
         self.original_settings = self.world.get_settings()
         self.tm = None
         self.actor_ids: list[int] = []  # vehicles and walkers
-        self.controllers: list = []
+        self.controllers: list = []  # started AI walker controllers
+        self.controller_ids: list[int] = []
         self.sensors: dict[tuple, object] = {}
         self.queues: dict[tuple, queue.Queue] = {}
         self.ego = None
@@ -192,11 +193,11 @@ class Session:
         ctrl_bp = lib.find("controller.ai.walker")
         results = self.client.apply_batch_sync(
             [carla.command.SpawnActor(ctrl_bp, carla.Transform(), wid) for wid, _ in walkers], True)
+        started = [(r.actor_id, speed) for r, (_, speed) in zip(results, walkers, strict=True) if not r.error]
+        self.controller_ids.extend(cid for cid, _ in started)  # destroyed on exit even if starting fails
         self.world.tick()  # controllers need one tick before they start
-        for r, (_, speed) in zip(results, walkers, strict=True):
-            if r.error:
-                continue
-            ctrl = self.world.get_actor(r.actor_id)
+        for cid, speed in started:
+            ctrl = self.world.get_actor(cid)
             ctrl.start()
             ctrl.go_to_location(self.world.get_random_location_from_navigation())
             ctrl.set_max_speed(speed)
@@ -211,10 +212,9 @@ class Session:
             if missing:
                 missing_attrs.setdefault(spec.blueprint, set()).update(missing)
             sensor = self.world.spawn_actor(bp, spec.mount.to_carla(self.carla), attach_to=self.ego)
-            q: queue.Queue = queue.Queue()
-            sensor.listen(q.put)
             self.sensors[spec.key] = sensor
-            self.queues[spec.key] = q
+            self.queues[spec.key] = q = queue.Queue()
+            sensor.listen(q.put)
         for bp_id, names in sorted(missing_attrs.items()):
             print(f"note: {bp_id} has no attribute(s) {', '.join(sorted(names))} in this CARLA release")
         dvs = [k for k in self.sensors if k[-1] == "dvs"]
@@ -233,6 +233,17 @@ class Session:
                 return data
             if data.frame > frame:  # should not happen in synchronous mode
                 raise CarlaCaptureError(f"sensor {'/'.join(key)}: got frame {data.frame} while waiting for {frame}")
+
+    def warm_up(self) -> None:
+        """One tick whose readings are not needed (sensors may skip their first frames): the
+        queues are emptied without waiting; late readings are dropped by `tick` as stale."""
+        self.world.tick()
+        for q in self.queues.values():
+            while True:
+                try:
+                    q.get_nowait()
+                except queue.Empty:
+                    break
 
     def tick(self, required: list[tuple], dvs: list[tuple]) -> dict:
         frame = self.world.tick()
@@ -262,11 +273,12 @@ class Session:
                 ctrl.stop()
             except RuntimeError:
                 pass
-        ids = [s.id for s in self.sensors.values()] + [c.id for c in self.controllers] + self.actor_ids
+        ids = [s.id for s in self.sensors.values()] + self.controller_ids + self.actor_ids
         if ids:
             self.client.apply_batch_sync([carla.command.DestroyActor(i) for i in ids], False)
         self.sensors.clear()
         self.controllers.clear()
+        self.controller_ids.clear()
         self.actor_ids.clear()
         if self.tm is not None:
             self.tm.set_synchronous_mode(False)
@@ -370,7 +382,7 @@ def capture_weather(carla, client, args, weather: str, rig_file) -> Path:
         print(f"[{weather}] {len(specs)} sensors on the ego, {len(session.actor_ids) - 1} other actors; "
               f"warming up {args.warmup} ticks")
         for _ in range(args.warmup - 1):
-            session.tick(required, dvs)
+            session.warm_up()
         prev = session.tick(required, dvs)
         views = {"bev": (bev_pinhole(config, args.bev_altitude), raised.bev_camera_to_vehicle),
                  "front": (front_camera(config), raised.front_camera_to_vehicle)}
