@@ -78,3 +78,28 @@ def stack_last(arrays: list[Array]) -> Array:
     """
     arrays = jax.lax.optimization_barrier(list(arrays))
     return jnp.moveaxis(jnp.stack(arrays, axis=0), 0, -1)
+
+
+@jax.custom_jvp
+def materialize(tree, token: Array):
+    """``tree`` unchanged, but computed once into buffers: on CPU, XLA drops optimization barriers
+    and may duplicate an expensive producer (a fisheye projection) into every consumer fusion (the
+    flow recomputed it several times). A while loop whose trip count XLA cannot know, and whose
+    body is not an identity it could hoist, is a boundary it keeps; ``token`` (any floating scalar
+    from the data) makes the count 1 at run time (0 if it is NaN: the same result). Derivatives
+    pass straight through (an identity), so it is safe under `jax.grad`."""
+    trips = jnp.where(token != token, 0, 1).astype(jnp.int32)
+
+    def body(c):
+        i, xs = c
+        flip = i < 0  # never true; XLA cannot prove it
+        return i + 1, jax.tree_util.tree_map(lambda x: jnp.where(flip, jnp.zeros_like(x), x), xs)
+
+    _, out = jax.lax.while_loop(lambda c: c[0] < trips, body, (jnp.int32(0), tree))
+    return out
+
+
+@materialize.defjvp
+def _materialize_jvp(primals, tangents):
+    tree, token = primals
+    return materialize(tree, token), tangents[0]

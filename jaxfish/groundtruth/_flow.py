@@ -11,10 +11,10 @@ point also undergoes the inverse camera motion.
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._numerics import materialize
 from ..cameras import AbstractCamera
 from ..transforms import CARLA_TO_ISO, Pose
 
@@ -156,9 +156,9 @@ def analytic_flow(
         world = jnp.where((idx >= 0)[..., None], moved, world)
     p_tgt = apply_pose(camera_to_world_target.inverse(), world)
     uv, ok_proj = tgt_cam.project(p_tgt)
-    # Materialise the projection once: otherwise XLA may fuse (and recompute) it into every
-    # consumer below (the four occlusion taps, the flow, the range).
-    uv, ok_proj, p_tgt = jax.lax.optimization_barrier((uv.astype(dtype), ok_proj, p_tgt))
+    # Materialise the projection once: otherwise XLA fuses (and recomputes) it into every consumer
+    # below (the four occlusion taps, the flow, the range).
+    uv, ok_proj, p_tgt = materialize((uv.astype(dtype), ok_proj, p_tgt), r.reshape(-1)[0].astype(dtype))
     in_image = ok & ok_proj & tgt_cam.contains(uv)
     grid = camera.pixel_grid(dtype)
     if tgt_cam.is_central:
