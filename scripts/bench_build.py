@@ -47,6 +47,11 @@ def _task(capture: str, out: str) -> float:
 
 
 def _worker_peak_mb() -> float:
+    """Peak RSS of a worker from /proc (VmHWM): ``ru_maxrss`` survives ``execve`` and would report
+    the parent's peak for spawned workers."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return float(line.split()[1]) / 1024.0
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 

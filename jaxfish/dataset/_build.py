@@ -365,8 +365,8 @@ def build_dataset(
             report.failed[sid] = err
         tick(sid, err)
 
-    if todo and (scheduler is not None or workers is not None):
-        _run_dask(str(reader.root), str(out), todo, options, scheduler, workers, processes, record)
+    if todo and (scheduler is not None or workers is not None):  # absolute paths: workers may run elsewhere
+        _run_dask(str(reader.root.resolve()), str(out.resolve()), todo, options, scheduler, workers, processes, record)
     else:
         for f in todo:
             record(*_sample_task(str(reader.root), str(out), f, options))
