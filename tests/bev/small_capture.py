@@ -90,3 +90,13 @@ def write_bev_capture(root: Path) -> Path:
     header["frames"] = [0]
     (root / "capture.json").write_text(json.dumps(header))
     return root
+
+
+_SHARED: dict[str, Path] = {}
+
+
+def shared_bev_capture(tmp_path_factory) -> Path:
+    """The capture written once per test session (read-only for its users: copy it to modify)."""
+    if "root" not in _SHARED:
+        _SHARED["root"] = write_bev_capture(tmp_path_factory.mktemp("bevcapture"))
+    return _SHARED["root"]

@@ -97,3 +97,12 @@ def test_ipm_stretches_raised_objects_by_the_closed_form(rig, jit_ipm):
     assert abs(on_plate.max() - far) <= BEV_MPP + 2.0 * 0.71 / k1 * (far - t[0]) ** 2 / t[2]
     assert abs(on_plate.min() - x0) <= BEV_MPP  # the base stays where it is
     assert on_plate.max() > x1 + 1.0  # ... so the top is predictably wrong by (far - x1)
+
+
+def test_bad_inputs_raise_clear_errors(rig):
+    with pytest.raises(ValueError, match=r"semantic must be integer \(N=4"):
+        bev.ipm_semantics(rig.cameras, rig.poses, rig.semantic[:2], rig.bev_camera, rig.bev_pose)
+    with pytest.raises(ValueError, match="do not match the cameras' images"):
+        bev.ipm_semantics(rig.cameras, rig.poses, rig.semantic[:, :5], rig.bev_camera, rig.bev_pose)
+    with pytest.raises(ValueError, match="valid must be"):
+        bev.ipm_semantics(rig.cameras, rig.poses, rig.semantic, rig.bev_camera, rig.bev_pose, valid=np.ones(3, bool))

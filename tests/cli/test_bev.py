@@ -16,13 +16,13 @@ from jaxfish import bev
 from jaxfish.cli import app
 from jaxfish.io import bev_metadata, read_bev_metadata, read_label_png, write_label_png
 from tests.bev.conftest import render
-from tests.bev.small_capture import BEV_MPP, BEV_SIZE, CAM_H, CAM_W, write_bev_capture
+from tests.bev.small_capture import BEV_MPP, BEV_SIZE, CAM_H, CAM_W, shared_bev_capture
 
 VIEW_FILES = ("semantic.png", "semantic_color.png", "height.npy", "height.png", "occupancy.png")
 
 
-def test_bev_on_a_capture(tmp_path):
-    cap = write_bev_capture(tmp_path / "cap")
+def test_bev_on_a_capture(tmp_path, tmp_path_factory):
+    cap = shared_bev_capture(tmp_path_factory)
     out = tmp_path / "out"
     result = CliRunner().invoke(app, ["bev", str(cap), "--out", str(out), "--frames", "0"])
     assert result.exit_code == 0, result.output

@@ -20,7 +20,7 @@ from jaxfish.io import (
     write_bev_ground_truth,
 )
 from tests.bev.conftest import BOXES, ground_class, pattern_is_uniform
-from tests.bev.small_capture import ACTOR_ID, TAG, write_bev_capture
+from tests.bev.small_capture import ACTOR_ID, TAG, shared_bev_capture
 from tests.bev.small_capture import BEV_MPP as MPP
 from tests.bev.small_capture import BEV_SIZE as BEV
 from tests.tolerances import BEV_HEIGHT_FROM_DEPTH_M
@@ -28,7 +28,7 @@ from tests.tolerances import BEV_HEIGHT_FROM_DEPTH_M
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
-    root = write_bev_capture(tmp_path_factory.mktemp("bevcapture"))
+    root = shared_bev_capture(tmp_path_factory)
     reader = CaptureReader(root)
     return root, reader, capture_bev_ground_truth(reader, 0)
 
