@@ -227,10 +227,11 @@ def depth_to_color(depth_m: np.ndarray) -> np.ndarray:
     d = np.asarray(depth_m, np.float64)
     lo, hi = DEPTH_COLOR_RANGE_M
     x = 1.0 - (np.log(np.clip(d, lo, hi)) - np.log(lo)) / (np.log(hi) - np.log(lo))
-    pos = x * (len(_MAGMA) - 1)
-    out = np.stack([np.interp(pos, np.arange(len(_MAGMA)), _MAGMA[:, c]) for c in range(3)], -1)
-    out = np.where(((d > 0) & (d < 999.0))[..., None], out, 0.0)
-    return np.rint(out).astype(np.uint8)
+    ramp = np.linspace(0.0, len(_MAGMA) - 1, 1024)
+    table = np.rint(np.stack([np.interp(ramp, np.arange(len(_MAGMA)), _MAGMA[:, c]) for c in range(3)], -1))
+    out = table.astype(np.uint8)[np.rint(x * 1023).astype(np.int64)]  # 1024-step ramp
+    out[~((d > 0) & (d < 999.0))] = 0
+    return out
 
 
 def events_color(events: np.ndarray, *, width: int, height: int) -> np.ndarray:
@@ -251,29 +252,31 @@ def events_color(events: np.ndarray, *, width: int, height: int) -> np.ndarray:
 
 
 def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.ndarray, x: np.ndarray, y: np.ndarray,
-                    t: np.ndarray, pol: np.ndarray) -> np.ndarray:
+                    t: np.ndarray, pol: np.ndarray, fanout: np.ndarray | None = None) -> np.ndarray:
     """NumPy twin of `jaxfish.groundtruth.map_events` + `compact_events` (same rule, same order:
     stable sort by time, ties in face-event then fisheye-pixel order) for an `EventMap`'s
-    ``targets`` array; returns CARLA-dtype fisheye events (t unchanged, ns)."""
+    ``targets`` (and ``fanout``, derived from ``targets`` when omitted); returns CARLA-dtype
+    fisheye events (t unchanged, ns)."""
     from ._carla import DVS_EVENT_DTYPE
 
     tg_all = np.asarray(targets)
     n_src = tg_all.shape[0]
+    fan = np.sum(tg_all >= 0, axis=1) if fanout is None else np.asarray(fanout)
     s = int(face_size)
     f, xi, yi = (np.asarray(a, np.int64) for a in (face, x, y))
     inb = (f >= 0) & (xi >= 0) & (xi < s) & (yi >= 0) & (yi < s)
-    src = np.where(inb, (f * s + yi) * s + xi, 0)
-    inb &= src < n_src
-    tg = np.where(inb[:, None], tg_all[np.where(inb, src, 0)], -1)
-    ok = tg >= 0
-    m = tg.shape[1]
-    tt = np.repeat(np.asarray(t, np.int64), m)[ok.reshape(-1)]
-    pp = np.repeat(np.asarray(pol, bool), m)[ok.reshape(-1)]
-    flat = tg.reshape(-1)[ok.reshape(-1)]
+    src = (f * s + yi) * s + xi
+    inb &= (src >= 0) & (src < n_src)
+    src = np.where(inb, src, 0)
+    counts = np.where(inb, fan[src], 0)
+    ev_idx = np.repeat(np.arange(src.shape[0]), counts)  # each face event, once per fisheye pixel it feeds
+    slot = np.arange(ev_idx.shape[0]) - np.repeat(np.cumsum(counts) - counts, counts)
+    flat = tg_all[src[ev_idx], slot]
+    tt = np.asarray(t, np.int64)[ev_idx]
     order = np.argsort(tt, kind="stable")
     out = np.empty(order.shape[0], DVS_EVENT_DTYPE)
     out["x"], out["y"] = flat[order] % width, flat[order] // width
-    out["t"], out["pol"] = tt[order], pp[order]
+    out["t"], out["pol"] = tt[order], np.asarray(pol, bool)[ev_idx][order]
     return out
 
 
@@ -337,7 +340,7 @@ def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None
         event_map = gt.event_map_from_lut(lut)
     h, w = lut.target_shape
     events = map_face_events(np.asarray(event_map.targets), int(w), int(event_map.face_size), cat["face"], cat["x"],
-                             cat["y"], cat["t"], cat["pol"])
+                             cat["y"], cat["t"], cat["pol"], fanout=np.asarray(event_map.fanout))
     return {"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
             "vehicle_to_world": v2w, "events": events, "camera": cam, "actors": actors}
 

@@ -1,0 +1,57 @@
+"""The builder's own file helpers against independent references: NumPy event mapping vs a loop
+over the rule (tests/groundtruth/test_files.py checks a capture's event counts against the JAX event map), deterministic
+npz, the depth colour map."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from jaxfish.io import depth_to_color, write_npz
+from jaxfish.io._labels import map_face_events
+
+
+def test_numpy_event_mapping_follows_the_rule():
+    """Against a plain loop over the rule: each face event goes to every fisheye pixel its face
+    pixel feeds (in fisheye-pixel order), all sorted by time, ties in input order."""
+    rng = np.random.default_rng(0)
+    faces, size, width, m = 2, 4, 7, 3
+    n_src = faces * size * size
+    fan = rng.integers(0, m + 1, n_src)
+    targets = np.full((n_src, m), -1, np.int64)
+    for i in range(n_src):
+        targets[i, : fan[i]] = np.sort(rng.choice(width * 5, fan[i], replace=False))
+    n = 300
+    face, x, y = rng.integers(-1, faces, n), rng.integers(-1, size + 1, n), rng.integers(0, size, n)
+    t, pol = rng.integers(0, 20, n), rng.random(n) < 0.5  # unsorted, many ties
+    want = []
+    for k in range(n):
+        if 0 <= face[k] and 0 <= x[k] < size:
+            for tg in targets[(face[k] * size + y[k]) * size + x[k]]:
+                if tg >= 0:
+                    want.append((int(t[k]), k, tg % width, tg // width, bool(pol[k])))
+    want.sort(key=lambda w: (w[0], w[1]))
+    for fanout in (fan, None):
+        got = map_face_events(targets, width, size, face, x, y, t, pol, fanout=fanout)
+        assert [(int(a), int(b), int(c), bool(d)) for a, b, c, d in zip(got["t"], got["x"], got["y"], got["pol"],
+                                                                        strict=True)] == \
+            [(w[0], w[2], w[3], w[4]) for w in want]
+
+
+def test_npz_is_deterministic_and_numpy_readable(tmp_path, monkeypatch):
+    arrays = {"events": np.arange(12, dtype=np.int64), "time_unit": np.asarray("us")}
+    a = write_npz(tmp_path / "a.npz", **arrays).read_bytes()
+    now = time.time()
+    monkeypatch.setattr(time, "time", lambda: now + 3600.0)  # an hour later: np.savez would differ
+    b = write_npz(tmp_path / "b.npz", **arrays).read_bytes()
+    assert a == b
+    with np.load(tmp_path / "a.npz", allow_pickle=False) as z:
+        np.testing.assert_array_equal(z["events"], arrays["events"]) and str(z["time_unit"]) == "us"
+
+
+def test_depth_colors_near_bright_far_dark_sky_black():
+    c = depth_to_color(np.asarray([[0.5, 10.0, 100.0, 1000.0, 0.0]], np.float32)).astype(int)
+    assert c.dtype == np.int64 and c.shape == (1, 5, 3)
+    lum = c[0].sum(-1)
+    assert lum[0] > lum[1] > lum[2] > 0 and lum[3] == 0 and lum[4] == 0
