@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._numerics import materialize
 from ..cameras import AbstractCamera, Orthographic
 from ..groundtruth import apply_pose
 from ..transforms import Pose
@@ -30,16 +31,16 @@ class IpmBev(eqx.Module):
     incidence_rad: Float[Array, "*batch H W"]
 
 
-def _sample_one(camera, to_camera, labels, valid, ground):
+def _sample_one(camera, to_camera, labels, ground):
     p = apply_pose(to_camera, ground)
-    uv, ok = camera.project(p)
+    # computed once into buffers: XLA on CPU otherwise repeats the projection in its consumers
+    uv, ok = materialize(camera.project(p), p[0, 0, 0])
     ok = ok & camera.contains(uv)
     h, w = labels.shape
     iu = jnp.clip(jnp.floor(uv[..., 0] + 0.5).astype(jnp.int32), 0, w - 1)
     iv = jnp.clip(jnp.floor(uv[..., 1] + 0.5).astype(jnp.int32), 0, h - 1)
-    flat = iv * w + iu
-    lab = jnp.take(labels.reshape(-1), flat)
-    ok = ok & jnp.take(valid.reshape(-1), flat) & (lab >= 0)
+    lab = jnp.take(labels.reshape(-1), iv * w + iu)  # labels already -1 where not valid: one gather
+    ok = ok & (lab >= 0)
     theta = jnp.arctan2(jnp.hypot(p[..., 0], p[..., 1]), p[..., 2])
     return jnp.where(ok, lab, UNOBSERVED), jnp.where(ok, theta, jnp.pi)
 
@@ -83,7 +84,8 @@ def ipm_semantics(
 def _ipm(cam, poses, sem, ok_valid, bev_camera, bev_camera_to_vehicle):
     # compiled once per shape: eager callers run one kernel instead of dispatching op by op
     ground = bev_ground_points(bev_camera, bev_camera_to_vehicle)
-    labels, theta = jax.vmap(_sample_one, in_axes=(0, 0, 0, 0, None))(cam, poses.inverse(), sem, ok_valid, ground)
+    masked = jnp.where(ok_valid, sem, UNOBSERVED)
+    labels, theta = jax.vmap(_sample_one, in_axes=(0, 0, 0, None))(cam, poses.inverse(), masked, ground)
     best = jnp.argmin(theta, axis=0)
     th = jnp.min(theta, axis=0)
     lab = jnp.take_along_axis(labels, best[None], axis=0)[0]
