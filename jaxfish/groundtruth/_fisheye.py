@@ -100,9 +100,10 @@ def camera_to_world(vehicle_to_world: Pose, camera_to_vehicle: Pose) -> Pose:
     return v @ c
 
 
-def _labels(images: FisheyeImages, points, boxes: Boxes3D, carla_version, margin_m, fallback_m, k, capacity, cand):
+def _labels(images: FisheyeImages, points, boxes: Boxes3D, carla_version, margin_m, fallback_m, k, capacity, cand,
+            capacity_many):
     world, base = points  # world points and base classes, from the planning step
-    inst = _assign(world, base, boxes, margin_m, fallback_m, TILE_SIZE, k, capacity, cand)
+    inst = _assign(world, base, boxes, margin_m, fallback_m, TILE_SIZE, k, capacity, cand, capacity_many)
     sem = carla_to_synwoodscape(images.tag, carla_version=carla_version, box_class=inst.class_id)
     return inst, sem
 
@@ -145,13 +146,15 @@ def _finish(camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehi
     c2w_p = camera_to_world(vehicle_to_world_prev, camera_to_vehicle)
     c2w = camera_to_world(vehicle_to_world, camera_to_vehicle)
     reach = max(margin_m, fallback_m)
-    k_host, n_host, cands, points = _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach)
+    k_host, n_host, m_host, cands, points = _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes,
+                                                         carla_version, reach)
     if max_candidates is None:
         max_candidates = max(int(k_host), 1)
     capacity = tile_capacity(int(n_host))
+    capacity_many = tile_capacity(int(m_host))
     return _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, points, carla_version,
                      float(motion_threshold_m), bool(backward_flow), float(margin_m), float(fallback_m),
-                     int(max_candidates), capacity, int(surface_samples))
+                     int(max_candidates), capacity, capacity_many, int(surface_samples))
 
 
 def view_ground_truth(
@@ -213,23 +216,25 @@ def _world_points(camera, rays, images: FisheyeImages, cam_to_world: Pose):
 
 @functools.partial(jax.jit, static_argnums=(8, 9))
 def _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach):
-    ks, ns, cs, pts = [], [], [], []
+    ks, ns, ms, cs, pts = [], [], [], [], []
     for im, c2w_, bx in ((img_p, c2w_p, boxes_prev), (img, c2w, boxes)):
         world, ok = _world_points(camera, rays, im, c2w_)
         base = jnp.where(ok, carla_to_synwoodscape(im.tag, carla_version=carla_version), -1)
-        k, n, c = _plan(world, base, bx, TILE_SIZE, reach)
+        k, n, m, c = _plan(world, base, bx, TILE_SIZE, reach)
         ks.append(k)
         ns.append(n)
+        ms.append(m)
         cs.append(c)
         pts.append((world, base))
-    return jnp.max(jnp.stack(ks)), jnp.max(jnp.stack(ns)), tuple(cs), tuple(pts)
+    return jnp.max(jnp.stack(ks)), jnp.max(jnp.stack(ns)), jnp.max(jnp.stack(ms)), tuple(cs), tuple(pts)
 
 
-@functools.partial(jax.jit, static_argnums=tuple(range(10, 18)))
+@functools.partial(jax.jit, static_argnums=tuple(range(10, 19)))
 def _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, points, carla_version, motion_threshold_m,
-              backward_flow, margin_m, fallback_m, k, capacity, surface_samples):
-    inst_p, sem_p = _labels(img_p, points[0], boxes_prev, carla_version, margin_m, fallback_m, k, capacity, cands[0])
-    inst, sem = _labels(img, points[1], boxes, carla_version, margin_m, fallback_m, k, capacity, cands[1])
+              backward_flow, margin_m, fallback_m, k, capacity, capacity_many, surface_samples):
+    inst_p, sem_p = _labels(img_p, points[0], boxes_prev, carla_version, margin_m, fallback_m, k, capacity, cands[0],
+                            capacity_many)
+    inst, sem = _labels(img, points[1], boxes, carla_version, margin_m, fallback_m, k, capacity, cands[1], capacity_many)
     disp = box_displacements(boxes_prev, boxes)
     motion = motion_segmentation(inst.box_index, disp, boxes.class_id, threshold_m=motion_threshold_m)
     fwd_motion = rigid_motion(boxes_prev.box_to_world, boxes.box_to_world)

@@ -59,18 +59,32 @@ def _tiles(x: Array, tile: int, fill) -> Array:
     return x.reshape((th * tw, tile * tile) + x.shape[4:])
 
 
+def _tile_blocks(x: Array, tile: int, fill) -> Array:
+    """``(H, W, ...)`` -> ``(th, tile, tw, tile, ...)`` (padded with ``fill``; a reshape, no transpose)."""
+    h, w = x.shape[:2]
+    th, tw = -(-h // tile), -(-w // tile)
+    pad = [(0, th * tile - h), (0, tw * tile - w)] + [(0, 0)] * (x.ndim - 2)
+    return jnp.pad(x, pad, constant_values=fill).reshape((th, tile, tw, tile) + x.shape[2:])
+
+
+def _tile_reduce(x: Array, tile: int, fill, op) -> Array:
+    """Per-tile reduction ``op`` of ``(H, W, ...)`` -> ``(T, ...)`` in `_tiles` order, reducing the
+    ``(th, tile, tw, tile)`` blocks in place (3x cheaper on CPU than reducing transposed tiles)."""
+    r = op(_tile_blocks(x, tile, fill), axis=(1, 3))
+    return r.reshape((r.shape[0] * r.shape[1],) + r.shape[2:])
+
+
 def _candidates(points_world, pixel_class, boxes: Boxes3D, tile: int, reach: float):
     """Per tile, which boxes may hold one of its instance pixels: the world AABB of the tile's
     instance points against each box's world AABB grown by ``reach``. Returns ``(T, B)``."""
     dtype = points_world.dtype
-    grp = _tiles(_pixel_groups(pixel_class), tile, 0)
-    pts = _tiles(points_world, tile, 0.0)
-    use = grp > 0
+    grp = _pixel_groups(pixel_class)
+    use = (grp > 0)[..., None]
     big = jnp.asarray(np.finfo(np.float32).max / 4, dtype)
-    lo = jnp.min(jnp.where(use[..., None], pts, big), axis=1)
-    hi = jnp.max(jnp.where(use[..., None], pts, -big), axis=1)
-    has_ped = jnp.any(grp == 1, axis=1)
-    has_veh = jnp.any(grp == 2, axis=1)
+    lo = _tile_reduce(jnp.where(use, points_world, big), tile, big, jnp.min)
+    hi = _tile_reduce(jnp.where(use, points_world, -big), tile, -big, jnp.max)
+    has_ped = _tile_reduce(grp == 1, tile, False, jnp.any)
+    has_veh = _tile_reduce(grp == 2, tile, False, jnp.any)
     c = boxes.corners().astype(dtype)
     r = jnp.asarray(reach, dtype)
     blo, bhi = jnp.min(c, axis=1) - r, jnp.max(c, axis=1) + r
@@ -95,11 +109,13 @@ _jit_candidates = jax.jit(_candidates, static_argnums=(3, 4))
 
 
 def _plan(points_world, pixel_class, boxes: Boxes3D, tile: int, reach: float):
-    """``(max candidates per tile, number of tiles holding instance pixels, the (T, B) candidate
-    mask)``: the static sizes, and the culling result to reuse."""
+    """``(max candidates per tile, number of tiles holding instance pixels, number of those with
+    more than one candidate, the (T, B) candidate mask)``: the static sizes, and the culling result
+    to reuse."""
     cand = _candidates(points_world, pixel_class, boxes, tile, reach)
-    busy = jnp.any(_tiles(_pixel_groups(pixel_class), tile, 0) > 0, axis=1)
-    return jnp.max(jnp.sum(cand, axis=-1)), jnp.sum(busy), cand
+    busy = _tile_reduce(_pixel_groups(pixel_class) > 0, tile, False, jnp.any)
+    n_cand = jnp.sum(cand, axis=-1)
+    return jnp.max(n_cand), jnp.sum(busy), jnp.sum(busy & (n_cand > 1)), cand
 
 
 _jit_plan = jax.jit(_plan, static_argnums=(3, 4))
@@ -122,6 +138,7 @@ def instance_segmentation(
     tile: int = TILE_SIZE,
     max_candidates: int | None = None,
     capacity: int | None = None,
+    capacity_many: int | None = None,
 ) -> InstanceMap:
     """Assign every instance-class pixel to the actor whose 3D box holds its point.
 
@@ -145,8 +162,11 @@ def instance_segmentation(
     per tile; ``None`` computes the exact bound on the host first (`max_box_candidates`; not inside
     `jax.jit`). Only the tiles holding instance pixels are tested: they are gathered into a static
     ``capacity`` (default: `tile_capacity` of their count, computed on the host with the candidate
-    bound; inside `jax.jit` pass it, or 0 to test every tile). Cost: ``busy tiles x tile² x
-    max_candidates`` box tests plus ``tiles x boxes`` AABB tests.
+    bound; inside `jax.jit` pass it, or 0 to test every tile). Most busy tiles have a single
+    candidate (often the ego's own box): they test only that one, and the tiles with more
+    candidates (static ``capacity_many``, sized on the host like ``capacity``; 0 inside `jax.jit`
+    unless given: one group) test ``max_candidates``. Cost: about ``busy tiles x tile²`` box tests
+    plus ``many-candidate tiles x tile² x max_candidates``, plus ``tiles x boxes`` AABB tests.
     """
     pts = jnp.asarray(points_world)
     cls = jnp.asarray(pixel_class).astype(jnp.int32)
@@ -158,11 +178,13 @@ def instance_segmentation(
     if max_candidates is None or capacity is None:
         if isinstance(pts, jax.core.Tracer):
             raise ValueError("instance_segmentation: pass static max_candidates and capacity inside jax.jit")
-        k_host, n_host, cand = _jit_plan(pts, cls, boxes, int(tile), float(max(margin_m, fallback_m)))
+        k_host, n_host, m_host, cand = _jit_plan(pts, cls, boxes, int(tile), float(max(margin_m, fallback_m)))
         max_candidates = int(k_host) if max_candidates is None else max_candidates
         capacity = tile_capacity(int(n_host)) if capacity is None else capacity
+        capacity_many = tile_capacity(int(m_host)) if capacity_many is None else capacity_many
     k = int(min(max(max_candidates, 1), max(boxes.num_boxes, 1)))
-    return _jit_assign(pts, cls, boxes, float(margin_m), float(fallback_m), int(tile), k, int(capacity), cand)
+    return _jit_assign(pts, cls, boxes, float(margin_m), float(fallback_m), int(tile), k, int(capacity), cand,
+                       int(capacity_many or 0))
 
 
 def _untile(x: Array, h: int, w: int, tile: int) -> Array:
@@ -173,7 +195,7 @@ def _untile(x: Array, h: int, w: int, tile: int) -> Array:
 
 
 def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: int, k: int, capacity: int = 0,
-            cand: Array | None = None) -> InstanceMap:
+            cand: Array | None = None, capacity_many: int = 0) -> InstanceMap:
     h, w = cls.shape
     dtype = pts.dtype
     grp_img = _pixel_groups(cls)
@@ -182,22 +204,64 @@ def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: 
         return InstanceMap(none, jnp.zeros((h, w), jnp.int32), none, grp_img > 0, jnp.zeros((h, w), bool))
     if cand is None:
         cand = _candidates(pts, cls, boxes, tile, max(margin_m, fallback_m))  # (T, B)
-    _, top = jax.lax.top_k(cand.astype(jnp.int32), k)  # (T, K) candidates first
-    top_ok = jnp.take_along_axis(cand, top, axis=1)
+    top, top_ok = _first_candidates(cand, k)  # (T, K)
     tp = _tiles(pts, tile, 0.0)  # (T, P, 3)
     tg = _tiles(grp_img, tile, 0)  # (T, P)
-    n_tiles = tg.shape[0]
+    n_tiles, n_px = tg.shape
+    boxes_f = (boxes.box_to_world.rotation_matrix.astype(dtype), boxes.box_to_world.translation.astype(dtype),
+               boxes.half_extent.astype(dtype),
+               jnp.where(boxes.class_id == CLASS_PEDESTRIAN, 1, jnp.where(boxes.class_id >= 0, 2, 0)))
     if capacity > 0:
-        # Only the tiles holding instance pixels (static capacity sized on the host).
-        sel = jnp.nonzero(jnp.any(tg > 0, axis=1), size=min(capacity, n_tiles), fill_value=n_tiles)[0]
-        sel_ok = sel < n_tiles
-        safe = jnp.where(sel_ok, sel, 0)
-        tp, tg = tp[safe], jnp.where(sel_ok[:, None], tg[safe], 0)
-        top, top_ok = top[safe], top_ok[safe] & sel_ok[:, None]
-    rot_all = boxes.box_to_world.rotation_matrix.astype(dtype)
-    ctr_all = boxes.box_to_world.translation.astype(dtype)
-    he_all = boxes.half_extent.astype(dtype)
-    grp_all = jnp.where(boxes.class_id == CLASS_PEDESTRIAN, 1, jnp.where(boxes.class_id >= 0, 2, 0))
+        # Only the tiles holding instance pixels (static capacities sized on the host): those with
+        # one candidate test it alone, those with several (few) test all k.
+        busy = jnp.any(tg > 0, axis=1)
+        groups = [(busy, capacity, k)]
+        if capacity_many > 0 and k > 1:
+            several = jnp.sum(cand, axis=1) > 1
+            groups = [(busy & ~several, capacity, 1), (busy & several, capacity_many, k)]
+        chosen = jnp.full((n_tiles, n_px), -1, jnp.int32)
+        any_near = jnp.zeros((n_tiles, n_px), bool)
+        for mask, cap, kk in groups:
+            sel = jnp.nonzero(mask, size=min(cap, n_tiles), fill_value=n_tiles)[0]
+            sel_ok = sel < n_tiles
+            safe = jnp.where(sel_ok, sel, 0)
+            c_sel, n_sel = _test_tiles(tp[safe], jnp.where(sel_ok[:, None], tg[safe], 0), top[safe, :kk],
+                                       top_ok[safe, :kk] & sel_ok[:, None], boxes_f, margin_m, fallback_m)
+            chosen = chosen.at[sel].set(c_sel, mode="drop")
+            any_near = any_near.at[sel].set(n_sel, mode="drop")
+    else:
+        chosen, any_near = _test_tiles(tp, tg, top, top_ok, boxes_f, margin_m, fallback_m)
+    box_index = _untile(chosen, h, w, tile)
+    fallback = _untile(any_near, h, w, tile)
+    safe_b = jnp.clip(box_index, 0, boxes.num_boxes - 1)
+    has = box_index >= 0
+    return InstanceMap(
+        box_index=box_index,
+        actor_id=jnp.where(has, boxes.actor_id[safe_b], 0).astype(jnp.int32),
+        class_id=jnp.where(has, boxes.class_id[safe_b], -1).astype(jnp.int32),
+        unassigned=(grp_img > 0) & ~has,
+        fallback=fallback,
+    )
+
+
+def _first_candidates(cand: Array, k: int) -> tuple[Array, Array]:
+    """Per row of ``cand (T, B)``, the indices of its first ``k`` True entries in ascending order
+    ``(T, k)`` and which slots hold one (a cumulative count and a scatter: XLA's top-k sorts)."""
+    t, b = cand.shape
+    slot = jnp.where(cand, jnp.cumsum(cand, axis=1, dtype=jnp.int32) - 1, k)  # k: dropped
+    rows = jnp.broadcast_to(jnp.arange(t, dtype=jnp.int32)[:, None], (t, b))
+    cols = jnp.broadcast_to(jnp.arange(b, dtype=jnp.int32)[None, :], (t, b))
+    top = jnp.zeros((t, k), jnp.int32).at[rows, slot].set(cols, mode="drop")
+    n = jnp.sum(cand, axis=1, dtype=jnp.int32)
+    return top, jnp.arange(k, dtype=jnp.int32)[None, :] < n[:, None]
+
+
+def _test_tiles(tp, tg, top, top_ok, boxes_f, margin_m: float, fallback_m: float):
+    """The six-plane test of tiles' points ``tp (T, P, 3)`` (groups ``tg (T, P)``) against their
+    candidate boxes ``top (T, K)`` (valid where ``top_ok``): ``(box index or -1, by fallback)``."""
+    rot_all, ctr_all, he_all, grp_all = boxes_f
+    dtype = tp.dtype
+    k = top.shape[1]
     big = jnp.asarray(np.inf, dtype)
     margin = jnp.asarray(margin_m, dtype)
     reach = jnp.asarray(fallback_m, dtype)
@@ -229,25 +293,10 @@ def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: 
     _, in_i, _, near_i = jax.lax.fori_loop(0, k, step, init)
     any_in = in_i >= 0
     any_near = (near_i >= 0) & ~any_in
-    chosen = jnp.where(any_in, in_i, near_i).astype(jnp.int32)
-    if capacity > 0:
-        full_shape = (n_tiles, shape[1])
-        chosen = jnp.full(full_shape, -1, jnp.int32).at[sel].set(chosen, mode="drop")
-        any_near = jnp.zeros(full_shape, bool).at[sel].set(any_near, mode="drop")
-    box_index = _untile(chosen, h, w, tile)
-    fallback = _untile(any_near, h, w, tile)
-    safe_b = jnp.clip(box_index, 0, boxes.num_boxes - 1)
-    has = box_index >= 0
-    return InstanceMap(
-        box_index=box_index,
-        actor_id=jnp.where(has, boxes.actor_id[safe_b], 0).astype(jnp.int32),
-        class_id=jnp.where(has, boxes.class_id[safe_b], -1).astype(jnp.int32),
-        unassigned=(grp_img > 0) & ~has,
-        fallback=fallback,
-    )
+    return jnp.where(any_in, in_i, near_i).astype(jnp.int32), any_near
 
 
-_jit_assign = jax.jit(_assign, static_argnums=(3, 4, 5, 6, 7))
+_jit_assign = jax.jit(_assign, static_argnums=(3, 4, 5, 6, 7, 9))
 
 
 def instance_colors(actor_id: Int[ArrayLike, "*batch"]) -> UInt8[Array, "*batch 3"]:
