@@ -143,6 +143,12 @@ def test_dask_local_cluster_build_equals_the_serial_build(small_capture, referen
     report = build_dataset(small_capture, out, workers=2, processes=False)
     assert report.ok and sorted(report.built) == list(SAMPLES)
     _assert_same_tree(reference_build[0], out)
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+        report = build_dataset(small_capture, tmp_path / "via_scheduler", scheduler=cluster.scheduler_address)
+    assert report.ok and sorted(report.built) == list(SAMPLES)
+    _assert_same_tree(reference_build[0], tmp_path / "via_scheduler")
 
 
 def _copy(capture: Path, tmp_path: Path, name: str) -> Path:
