@@ -11,7 +11,7 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import eps_for, float_dtype, resolve_dtype, safe_norm, stack_last, theta_over_sin
+from .._numerics import eps_for, float_dtype, incidence_angle, resolve_dtype, safe_norm, stack_last, theta_over_sin
 from ._base import AbstractCamera, as_coordinates, check_image_size
 from ._domain import first_increasing_limit
 
@@ -153,7 +153,7 @@ class KannalaBrandt(AbstractCamera):
         chi = safe_norm(p[..., :2])
         r = safe_norm(p)
         nonzero = r > 0
-        theta = jnp.arctan2(jnp.where(nonzero, chi, 0.0), jnp.where(nonzero, z, 1.0))
+        theta = incidence_angle(jnp.where(nonzero, chi, 0.0), jnp.where(nonzero, z, 1.0))
         # theta_d / chi = (theta_d / θ) (θ / sin θ) / r: smooth at chi = 0.
         t2 = theta * theta
         td_over_t = 1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])))

@@ -10,7 +10,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import eps_for, float_dtype, resolve_dtype, safe_norm, stack_last, theta_over_sin
+from .._numerics import eps_for, float_dtype, incidence_angle, resolve_dtype, safe_norm, stack_last, theta_over_sin
 from ._base import AbstractCamera, as_coordinates, check_image_size
 from ._domain import first_increasing_limit
 
@@ -206,7 +206,7 @@ class WoodScapeFisheye(AbstractCamera):
         chi = safe_norm(p[..., :2])
         r = safe_norm(p)
         nonzero = r > 0
-        theta = jnp.arctan2(jnp.where(nonzero, chi, 0.0), jnp.where(nonzero, z, 1.0))
+        theta = incidence_angle(jnp.where(nonzero, chi, 0.0), jnp.where(nonzero, z, 1.0))
         # rho(θ)/chi = (rho(θ)/θ) · (θ/sin θ) / r: no division by chi, exact and smooth at chi = 0.
         inv_r = 1.0 / jnp.where(nonzero, r, 1.0)
         ratio = _rho_over_theta(k, theta) * theta_over_sin(theta) * inv_r
