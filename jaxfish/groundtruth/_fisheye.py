@@ -148,8 +148,8 @@ def _finish(camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehi
     reach = max(margin_m, fallback_m)
     k_host, n_host, m_host, cands, points = _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes,
                                                          carla_version, reach)
-    if max_candidates is None:
-        max_candidates = max(int(k_host), 1)
+    if max_candidates is None:  # a power of two: frames and cameras of similar content share one compilation
+        max_candidates = 1 << max(int(k_host) - 1, 0).bit_length()
     capacity = tile_capacity(int(n_host))
     capacity_many = tile_capacity(int(m_host))
     return _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, points, carla_version,

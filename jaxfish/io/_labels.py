@@ -134,7 +134,10 @@ def write_boxes_3d_pickle(path: str | os.PathLike, boxes: Mapping[int, Any]) -> 
     (the class and vehicle-frame corners go to `write_boxes_3d_ext_json`)."""
     clean = {}
     for k, v in sorted(boxes.items()):
-        a = np.asarray(v, np.float64)
+        try:
+            a = np.asarray(v, np.float64)
+        except (TypeError, ValueError) as e:
+            raise ImageError(f"{path}: box {k}: corners must be an (8, 3) array of numbers ({e})") from e
         if a.shape != (8, 3):
             raise ImageError(f"{path}: box {k}: corners must be (8, 3), got {a.shape}")
         clean[int(k)] = a

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 
@@ -63,12 +65,16 @@ def test_box_csv_round_trip(tmp_path):
 
 
 def test_box_pickle_and_displacements(tmp_path):
-    boxes = {7: {"corners_world": np.arange(24.0).reshape(8, 3), "corners_vehicle": np.zeros((8, 3)),
-                 "class_id": 10, "class_name": "vehicle"}}
-    write_boxes_3d_pickle(tmp_path / "b.pkl", boxes)
-    back = read_boxes_3d_pickle(tmp_path / "b.pkl")
-    np.testing.assert_array_equal(back[7]["corners_world"], boxes[7]["corners_world"])
-    assert back[7]["class_id"] == 10
+    corners = np.arange(24.0).reshape(8, 3)
+    write_boxes_3d_pickle(tmp_path / "b.pkl", {7: corners})
+    with open(tmp_path / "b.pkl", "rb") as fh:  # the release format, read without jaxfish
+        raw = pickle.load(fh)
+    assert list(raw) == [7] and raw[7].dtype == np.float64
+    np.testing.assert_array_equal(raw[7], corners)
+    np.testing.assert_array_equal(read_boxes_3d_pickle(tmp_path / "b.pkl")[7], corners)
+    with pytest.raises(ImageError, match=r"b2\.pkl: box 7"):
+        write_boxes_3d_pickle(tmp_path / "b2.pkl", {7: {"corners_world": corners}})
+    assert not (tmp_path / "b2.pkl").exists()
     write_displacements(tmp_path / "d.txt", [3, 4], [10, 4], [0.75, 0.0], threshold_m=0.5)
     assert read_displacements(tmp_path / "d.txt") == {3: 0.75, 4: 0.0}
     assert (tmp_path / "d.txt").read_text().splitlines()[1] == "3 10 0.750000 1"
