@@ -28,9 +28,13 @@ def stack_cameras(cameras: AbstractCamera | Sequence[AbstractCamera]) -> Abstrac
 
 
 def stack_poses(poses: Pose | Sequence[Pose], *, dtype=jnp.float32) -> Pose:
-    """Poses stacked on a leading axis ``(N,)`` (a batched `Pose` is returned as is), as ``dtype``."""
+    """Poses stacked on a leading axis ``(N,)`` as ``dtype``: a batched `Pose` is returned as is, a
+    single `Pose` (a ``(3, 3)`` rotation) becomes a batch of one."""
     if isinstance(poses, Pose):
-        return Pose(poses.rotation_matrix, poses.translation, dtype=dtype)
+        r, t = poses.rotation_matrix, poses.translation
+        if tuple(jnp.shape(r)) == (3, 3):
+            r, t = jnp.asarray(r)[None], jnp.asarray(t)[None]
+        return Pose(r, t, dtype=dtype)
     ps = list(poses)
     if not ps:
         raise ValueError("stack_poses: no poses given")

@@ -17,7 +17,7 @@ from ..cameras import AbstractCamera, Orthographic
 from ..groundtruth import FAR_RANGE_M
 from ..transforms import Pose
 from ._cameras import rig_rays, stack_cameras, stack_poses
-from ._grid import OCCUPANCY_MIN_HEIGHT_M
+from ._grid import OCCUPANCY_MIN_HEIGHT_M, _check_down
 
 #: Heights are stored in the fusion z-buffer in steps of this many metres (1 mm).
 HEIGHT_QUANTUM_M = 1e-3
@@ -87,7 +87,7 @@ def fuse_cameras(
     occupancy_min_height_m: float = OCCUPANCY_MIN_HEIGHT_M,
 ) -> BevFusion:
     """Fuse N cameras' range and semantic maps into the top view of ``bev_camera`` (mounted by
-    ``bev_camera_to_vehicle``; looking straight down).
+    ``bev_camera_to_vehicle``; looking straight down, checked when the pose is concrete).
 
     Every pixel with a valid ray, ``0 < range < far_m`` and a class in ``[0, MAX_CLASSES)`` becomes
     the 3D point ``range * ray`` (camera frame), moved to the vehicle frame by its
@@ -109,8 +109,7 @@ def fuse_cameras(
         raise ValueError(f"fuse_cameras: semantic must be integer {r.shape}, got {sem.dtype} {sem.shape}")
     if (cam.height, cam.width) != r.shape[1:]:
         raise ValueError(f"fuse_cameras: range maps {r.shape[1:]} do not match the cameras' images {(cam.height, cam.width)}")
-    if bev_camera_to_vehicle.rotation_matrix.shape != (3, 3):
-        raise ValueError("fuse_cameras: bev_camera_to_vehicle must be one pose")
+    _check_down(bev_camera_to_vehicle, "fuse_cameras: bev_camera_to_vehicle")
     ok_valid = jnp.ones(r.shape, bool) if valid is None else jnp.asarray(valid, bool)
     if ok_valid.shape != r.shape:
         raise ValueError(f"fuse_cameras: valid must be {r.shape}, got {ok_valid.shape}")

@@ -9,6 +9,7 @@ function here uses the pose itself, so any downward-looking mount works.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
@@ -23,6 +24,10 @@ OCCUPANCY_MIN_HEIGHT_M = 0.2
 #: Height range (metres) of the colour rendering of height maps (`colorize_height`).
 HEIGHT_COLOR_RANGE_M = (0.0, 4.0)
 
+#: A BEV camera counts as looking straight down when its optical axis (camera +z, in the vehicle
+#: frame) has a component along vehicle -z above this (within ~2.6 degrees of the vertical).
+_DOWN_MIN_COSINE = 1.0 - 1e-3
+
 _F32 = jnp.float32
 
 
@@ -31,9 +36,18 @@ def _pose32(pose: Pose) -> Pose:
 
 
 def _check_down(camera_to_vehicle: Pose, what: str) -> None:
+    """One pose looking straight down: R[:, 2] . (0, 0, -1) > `_DOWN_MIN_COSINE` (checked when the
+    pose is concrete; a traced pose inside ``jit`` is the caller's responsibility)."""
     r = camera_to_vehicle.rotation_matrix
     if tuple(r.shape) != (3, 3):
         raise ValueError(f"{what}: camera_to_vehicle must be one pose (3 x 3 rotation), got {tuple(r.shape)}")
+    if isinstance(r, jax.core.Tracer):
+        return
+    down = -float(np.asarray(r, np.float64)[2, 2])
+    if not down > _DOWN_MIN_COSINE:
+        axis = np.round(np.asarray(r, np.float64)[:, 2], 4).tolist()
+        raise ValueError(f"{what}: camera_to_vehicle must look straight down (optical axis R[:, 2] = (0, 0, -1) in the "
+                         f"vehicle frame, cosine > {_DOWN_MIN_COSINE}), got optical axis {axis}")
 
 
 def bev_pixel_to_vehicle(camera: Orthographic, camera_to_vehicle: Pose) -> Float[Array, "2 3"]:

@@ -28,6 +28,9 @@ BEV_AXES = ("image up = vehicle forward (+x, ISO 8855), image right = vehicle ri
             "pixel (u, v) sees the ground point [x, y] = pixel_to_vehicle_xy @ [u, v, 1] (metres)")
 
 
+_ROTATION_TOL = 1e-4  # |R^T R - I| and |det R - 1| of a stored rotation (float32 round trips: ~1e-7)
+
+
 def _pose_from_json(d: Any, where: str):
     import jax.numpy as jnp
 
@@ -41,6 +44,11 @@ def _pose_from_json(d: Any, where: str):
         raise CaptureError(f"{where}: field 'camera_to_vehicle' malformed ({e!r})") from e
     if r.shape != (3, 3) or t.shape != (3,) or not (np.all(np.isfinite(r)) and np.all(np.isfinite(t))):
         raise CaptureError(f"{where}: field 'camera_to_vehicle' needs a finite 3x3 rotation_matrix and 3-vector translation")
+    orth = float(np.max(np.abs(r.T @ r - np.eye(3))))
+    det = float(np.linalg.det(r))
+    if orth > _ROTATION_TOL or abs(det - 1.0) > _ROTATION_TOL:
+        raise CaptureError(f"{where}: field 'camera_to_vehicle.rotation_matrix' is not a rotation "
+                           f"(max |R^T R - I| = {orth:.3g}, det = {det:.6g}; needs R^T R = I and det = +1)")
     return Pose(r, t, dtype=jnp.float32)
 
 
@@ -225,7 +233,13 @@ def read_bev_metadata(path: str | os.PathLike) -> dict[str, Any]:
         inp.close()
     if not value:
         raise ImageError(f"{path}: no '{BEV_METADATA_ATTRIBUTE}' metadata")
-    return json.loads(value)
+    try:
+        meta = json.loads(value)
+    except json.JSONDecodeError as e:
+        raise ImageError(f"{path}: metadata '{BEV_METADATA_ATTRIBUTE}' is not valid JSON ({e})") from e
+    if not isinstance(meta, dict):
+        raise ImageError(f"{path}: metadata '{BEV_METADATA_ATTRIBUTE}' must be a JSON object, got {type(meta).__name__}")
+    return meta
 
 
 def write_bev_ground_truth(root: str | os.PathLike, sample: str, result: Mapping[str, Any]) -> list[Path]:

@@ -104,3 +104,25 @@ def test_bad_inputs_raise_clear_errors(rig):
                          valid=np.ones((4, 2, 2), bool))
     with pytest.raises(ValueError, match="share one model and image size"):
         bev.stack_cameras([rig.calibs["FV"].camera, rig.calibs["RV"].resize(64, 48).camera])
+
+
+def test_bev_pose_must_look_down_and_single_poses_stack(rig):
+    from jaxfish.transforms import Pose
+
+    sideways = Pose(np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]), np.array([1.3, 0.0, 50.0]))
+    up = Pose(np.asarray(rig.bev_pose.rotation_matrix, np.float64) * [1.0, -1.0, -1.0], np.asarray(rig.bev_pose.translation))
+    for pose in (sideways, up):
+        with pytest.raises(ValueError, match="look straight down"):
+            bev.fuse_cameras(rig.cameras, rig.poses, rig.range_m, rig.semantic, rig.bev_camera, pose, rays=rig.rays)
+        with pytest.raises(ValueError, match="look straight down"):
+            bev.ipm_semantics(rig.cameras, rig.poses, rig.semantic, rig.bev_camera, pose)
+        for f in (bev.bev_ground_points, bev.bev_pixel_to_vehicle):
+            with pytest.raises(ValueError, match="look straight down"):
+                f(rig.bev_camera, pose)
+    # One unbatched pose is a batch of one camera (not a misleading "range_m must be (N=3, ...)").
+    one = bev.stack_poses(rig.calibs["FV"].camera_to_vehicle)
+    assert one.rotation_matrix.shape == (1, 3, 3) and one.translation.shape == (1, 3)
+    np.testing.assert_allclose(one.rotation_matrix[0], rig.calibs["FV"].camera_to_vehicle.rotation_matrix, atol=1e-7)
+    with pytest.raises(ValueError, match=r"range_m must be \(N=1"):
+        bev.fuse_cameras(rig.calibs["FV"].camera, rig.calibs["FV"].camera_to_vehicle, rig.range_m, rig.semantic,
+                         rig.bev_camera, rig.bev_pose)

@@ -118,3 +118,33 @@ def test_errors_name_file_and_field(capture, tmp_path):
     bad = dict(res, height_m=np.zeros((3, 3), np.float32))
     with pytest.raises(jf.JaxfishError, match="height"):
         write_bev_ground_truth(tmp_path / "out", "00002", bad)
+
+
+def test_calibration_poses_must_be_rotations_and_metadata_json(capture, tmp_path):
+    import OpenImageIO as oiio
+
+    from jaxfish.io import BEV_METADATA_ATTRIBUTE, bev_metadata, load_bev_calibration
+
+    _, _, res = capture
+    meta = bev_metadata(res["camera"], res["camera_to_vehicle"])
+    for bad in (np.diag([1.0, 1.0, -1.0]), 2 * np.eye(3), [[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]):
+        path = tmp_path / "BEV.json"
+        path.write_text(json.dumps(dict(meta, camera_to_vehicle={"rotation_matrix": np.asarray(bad).tolist(),
+                                                                 "translation": [0.0, 0.0, 50.0]})))
+        with pytest.raises(jf.ImageError, match=r"BEV.json.*camera_to_vehicle.rotation_matrix.*not a rotation"):
+            load_bev_calibration(path)
+    cam, pose = load_bev_calibration(_write_json(tmp_path / "ok.json", meta))
+    assert cam.width == res["camera"].width
+    png = tmp_path / "broken.png"
+    out = oiio.ImageOutput.create(str(png))
+    spec = oiio.ImageSpec(2, 2, 1, oiio.UINT8)
+    spec.attribute(BEV_METADATA_ATTRIBUTE, "{not json")
+    assert out.open(str(png), spec) and out.write_image(np.zeros((2, 2, 1), np.uint8))
+    out.close()
+    with pytest.raises(jf.ImageError, match=r"broken.png.*not valid JSON"):
+        read_bev_metadata(png)
+
+
+def _write_json(path, obj):
+    path.write_text(json.dumps(obj))
+    return path
