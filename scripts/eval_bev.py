@@ -8,6 +8,8 @@ true top view by the capture's BEV camera (`jaxfish.scene.simulate_view`) at ``-
 and ``--mpp`` metres per pixel. Classes are SynWoodScape's (two-wheelers and the ego split off by
 their actors). IoU is pooled over all samples, over all BEV cells (a cell the fusion did not
 observe counts as a miss) and over the cells the fusion observed (both methods on the same cells).
+mIoU ignores class 0 (``unlabeled``, void) and averages over the classes present in the truth, the
+same classes for both methods.
 
     uv run python scripts/eval_bev.py [--samples 4] [--width 320] [--bev-size 256] [--mpp 0.08]
 """
@@ -28,6 +30,12 @@ from jaxfish import groundtruth as gt
 from jaxfish.scene import CaptureConfig, bev_camera, generate_street, render_fisheye, sensor_mounts, simulate_view
 
 F32 = jnp.float32
+VOID_CLASS = 0  # SynWoodScape "unlabeled": not scored
+
+
+def scored_iou(inter, union, truth_count) -> dict[str, float]:
+    """IoU per scored class (present in the truth, not void) by name."""
+    return {gt.SYNWOODSCAPE_CLASSES[k]: float(inter[k] / union[k]) for k in np.nonzero(truth_count)[0] if k != VOID_CLASS}
 
 
 def classes(tags, actor_id, actor_class: dict[int, int]) -> np.ndarray:
@@ -57,7 +65,8 @@ def main() -> None:
     poses = bev.stack_poses([rig[n].camera_to_vehicle for n in names])
     rays = jax.jit(bev.rig_rays)(cams)
     iou = jax.jit(lambda p, t: bev.semantic_iou(p, t, num_classes=len(gt.SYNWOODSCAPE_CLASSES)))
-    pooled = {"fused": [0, 0], "ipm": [0, 0], "fused_observed": [0, 0], "ipm_observed": [0, 0]}
+    pooled = {"fused": [0, 0, 0], "ipm": [0, 0, 0], "fused_observed": [0, 0, 0], "ipm_observed": [0, 0, 0]}
+    n_cls = len(gt.SYNWOODSCAPE_CLASSES)
     per_sample = []
     t0 = time.perf_counter()
     for seed in range(args.samples):
@@ -80,28 +89,34 @@ def main() -> None:
         for name, pred, t in (("fused", fused.semantic, truth), ("ipm", ipm.semantic, truth),
                               ("fused_observed", fused.semantic, t_obs), ("ipm_observed", ipm.semantic, t_obs)):
             s = iou(np.asarray(pred, np.int32), t.astype(np.int32))
+            t_flat = t.reshape(-1)
+            counts = np.bincount(t_flat[(t_flat >= 0) & (t_flat < n_cls)], minlength=n_cls)
             pooled[name][0] = pooled[name][0] + np.asarray(s.intersection, np.int64)
             pooled[name][1] = pooled[name][1] + np.asarray(s.union, np.int64)
-            row[name] = float(s.mean_iou)
+            pooled[name][2] = pooled[name][2] + counts
+            per_class = scored_iou(np.asarray(s.intersection), np.asarray(s.union), counts)
+            row[name] = float(np.mean(list(per_class.values()))) if per_class else float("nan")
         per_sample.append(row)
         print(f"seed {seed}: fused mIoU {100 * row['fused']:.1f}  IPM mIoU {100 * row['ipm']:.1f}  "
               f"(fusion observed {100 * row['observed']:.0f} % of the cells)  {time.perf_counter() - t0:.0f} s", flush=True)
     table = {}
-    for name, (inter, union) in pooled.items():
-        present = union > 0
-        table[name] = {gt.SYNWOODSCAPE_CLASSES[k]: float(inter[k] / union[k]) for k in np.nonzero(present)[0]}
+    for name, (inter, union, counts) in pooled.items():
+        table[name] = scored_iou(inter, union, counts)
     cls_names = sorted(set(table["fused"]) | set(table["ipm"]), key=gt.SYNWOODSCAPE_CLASSES.index)
     print(f"\n{args.samples} samples, fisheyes {width}x{height}, BEV {args.bev_size}x{args.bev_size} @ {args.mpp} m/px")
     cols = ("ipm", "fused", "ipm_observed", "fused_observed")
-    print("all cells: IPM, fused; cells observed by the fusion: IPM, fused (IoU %)")
+    print("all cells: IPM, fused; cells observed by the fusion: IPM, fused (IoU %; classes present in the truth, "
+          "'unlabeled' ignored)")
     print(f"{'class':<14}" + "".join(f"{c:>16}" for c in cols))
     for c in cls_names:
         print(f"{c:<14}" + "".join(f"{100 * table[n].get(c, 0.0):>16.1f}" for n in cols))
-    miou = {n: float(np.mean(list(table[n].values()))) for n in table}
+    miou = {n: float(np.mean(list(table[n].values()))) if table[n] else float("nan") for n in table}
     print(f"{'mIoU':<14}" + "".join(f"{100 * miou[n]:>16.1f}" for n in cols))
     print("paper (SynWoodScape): IPM 61.2, native top view 76.5")
     if args.json:
-        print(json.dumps({"per_class": table, "miou": miou, "per_sample": per_sample}, indent=1))
+        miou_json = {n: v if np.isfinite(v) else None for n, v in miou.items()}
+        rows = [{k: v if not isinstance(v, float) or np.isfinite(v) else None for k, v in r.items()} for r in per_sample]
+        print(json.dumps({"per_class": table, "miou": miou_json, "per_sample": rows}, indent=1))
 
 
 if __name__ == "__main__":

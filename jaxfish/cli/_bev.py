@@ -10,7 +10,11 @@ scale and axes as metadata (``jaxfish.io.read_bev_metadata``)::
     DIR/{truth,fused}/ID_height.npy / .png   float32 metres above the ground / viridis 0-4 m
     DIR/{truth,fused}/ID_occupancy.png       255 occupied, 0 free (or unobserved)
     DIR/ipm/ID_semantic.png, ID_semantic_color.png
-    DIR/scores.json                          per-sample and pooled per-class IoU, mIoU
+    DIR/scores.json                          per-sample and pooled per-class IoU, mIoU (null: no score)
+
+mIoU ignores class 0 (``unlabeled``, void) and averages, for both methods alike, over the classes
+present in the true top view (a class only a prediction has lowers the IoU of the true classes it
+covers, but is not averaged itself).
 """
 
 from __future__ import annotations
@@ -152,6 +156,8 @@ def bev(
 ) -> None:
     """True top view, camera-fused top view and IPM baseline of a capture or a built dataset, with mIoU."""
     if (source / "capture.json").is_file():
+        if samples is not None:
+            raise fail("--samples is for built datasets; use --frames for a capture")
         items = _capture_items(source, frames)
         kind = "capture"
     elif (source / "calibration_data").is_dir():
@@ -171,6 +177,34 @@ def bev(
 
 
 _IOU: list = []
+VOID_CLASS = 0  # SynWoodScape "unlabeled": not scored
+
+
+def _truth_counts(truth, num_classes: int):
+    """Pixels of each class ``0..num_classes-1`` in a true label map."""
+    import numpy as np
+
+    t = np.asarray(truth).reshape(-1)
+    return np.bincount(t[(t >= 0) & (t < num_classes)].astype(np.int64), minlength=num_classes)
+
+
+def _class_iou(inter, union, truth_count):
+    """Per-class IoU (NaN where not scored: the void class and classes absent from the truth) and
+    their mean (NaN when none is scored)."""
+    import numpy as np
+
+    inter, union, truth_count = (np.asarray(a, np.float64) for a in (inter, union, truth_count))
+    scored = truth_count > 0
+    scored[VOID_CLASS] = False
+    iou = np.where(scored, inter / np.maximum(union, 1), np.nan)
+    return iou, float(np.mean(iou[scored])) if scored.any() else float("nan")
+
+
+def _json_number(x):
+    """A float for JSON: None (null) instead of NaN / infinity (bare NaN is not valid JSON)."""
+    import math
+
+    return float(x) if math.isfinite(x) else None
 
 
 def _iou():
@@ -190,12 +224,13 @@ def _run(items, out: Path, kind: str):
     import numpy as np
 
     from .. import bev as jbev
+    from ..groundtruth import SYNWOODSCAPE_CLASSES
     from ..io import bev_metadata
 
     iou = _iou()
     rays = None
     per_sample = []
-    pooled = {"fused": [], "ipm": []}
+    pooled = {"fused": [], "ipm": [], "truth_count": []}
     with console.status(f"{kind}: top views ...") as status:
         for sid, cam, pose, maps, truth in items:
             status.update(f"{kind} sample {sid}: fusing {len(maps['names'])} cameras")
@@ -215,9 +250,11 @@ def _run(items, out: Path, kind: str):
             if truth is not None:
                 _write_view(out / "truth", sid, meta, truth["semantic"], truth["height_m"], truth["occupancy"])
                 t = np.asarray(truth["semantic"], np.int32)
+                counts = _truth_counts(t, len(SYNWOODSCAPE_CLASSES))
+                pooled["truth_count"].append(counts)
                 for name, pred in (("fused", f.semantic), ("ipm", i.semantic)):
                     s = iou(np.asarray(pred, np.int32), t)
-                    row[f"miou_{name}"] = float(s.mean_iou)
+                    row[f"miou_{name}"] = _class_iou(s.intersection, s.union, counts)[1]
                     pooled[name].append((np.asarray(s.intersection), np.asarray(s.union)))
             per_sample.append(row)
     return per_sample, pooled
@@ -237,19 +274,20 @@ def _report(source: Path, kind: str, out: Path, per_sample: list, pooled: dict) 
         table.add_row(r["sample"], f"{100 * r.get('miou_fused', float('nan')):.1f}",
                       f"{100 * r.get('miou_ipm', float('nan')):.1f}", f"{100 * r['observed_fraction']:.0f} %")
     console.print(table)
-    scores = {"source": str(source), "kind": kind, "samples": per_sample}
+    rows = [{k: _json_number(v) if isinstance(v, float) else v for k, v in r.items()} for r in per_sample]
+    scores = {"source": str(source), "kind": kind, "samples": rows,
+              "miou_rule": "mean IoU over the classes present in the true top view, class 0 (unlabeled) ignored"}
     if pooled["fused"]:
         cls_table = Table(title="per class, pooled over samples (IoU %)")
         for col in ("class", "fused", "IPM"):
             cls_table.add_column(col)
         per_class = {}
         means = {}
+        counts = np.sum(pooled["truth_count"], axis=0)
         for name in ("fused", "ipm"):
             inter = np.sum([a for a, _ in pooled[name]], axis=0)
             union = np.sum([b for _, b in pooled[name]], axis=0)
-            present = union > 0
-            per_class[name] = np.where(present, inter / np.maximum(union, 1), np.nan)
-            means[name] = float(np.nanmean(per_class[name]))
+            per_class[name], means[name] = _class_iou(inter, union, counts)
         for k, cname in enumerate(SYNWOODSCAPE_CLASSES):
             if np.isfinite(per_class["fused"][k]) or np.isfinite(per_class["ipm"][k]):
                 cls_table.add_row(cname, *(f"{100 * per_class[n][k]:.1f}" for n in ("fused", "ipm")))
@@ -257,8 +295,8 @@ def _report(source: Path, kind: str, out: Path, per_sample: list, pooled: dict) 
         console.print(cls_table)
         scores["per_class_iou"] = {n: {SYNWOODSCAPE_CLASSES[k]: float(v) for k, v in enumerate(per_class[n])
                                        if np.isfinite(v)} for n in ("fused", "ipm")}
-        scores["miou"] = means
+        scores["miou"] = {n: _json_number(v) for n, v in means.items()}
     else:
         console.print("no true top view found: wrote the fused and IPM views only", highlight=False)
-    atomic_write_text(out / "scores.json", json.dumps(scores, indent=1) + "\n")
+    atomic_write_text(out / "scores.json", json.dumps(scores, indent=1, allow_nan=False) + "\n")
     console.print(f"wrote {len(per_sample)} sample(s) to {out}", highlight=False)

@@ -95,3 +95,35 @@ def test_bev_errors_name_the_file(dataset, tmp_path):
         assert result.exit_code == 2 and "00007_MVR.npy" in result.output.replace("\n", "")
     finally:
         (tmp_path / "moved.npy").rename(root / "depth_maps" / "raw_data" / "00007_MVR.npy")
+
+
+def test_miou_ignores_void_and_scores_truth_classes_and_json_has_no_nan(tmp_path, tmp_path_factory):
+    from jaxfish.cli import _bev as cli_bev
+
+    # Truth: classes 0 (void), 1, 2; prediction adds class 3 where the truth has 2.
+    truth = np.array([0, 0, 1, 1, 2, 2])
+    pred = np.array([3, 1, 1, 1, 2, 3])
+    counts = cli_bev._truth_counts(truth, 5)
+    s = bev.semantic_iou(pred, truth, num_classes=5)
+    iou, mean = cli_bev._class_iou(s.intersection, s.union, counts)
+    # By hand: class 1: 2 / 3 (a void pixel predicted 1), class 2: 1 / 2; classes 0, 3, 4 not scored.
+    np.testing.assert_allclose(iou[1:3], [2 / 3, 1 / 2])
+    assert np.isnan(iou[[0, 3, 4]]).all() and mean == pytest.approx((2 / 3 + 1 / 2) / 2)
+    assert np.isnan(cli_bev._class_iou(s.intersection, s.union, cli_bev._truth_counts(np.zeros(6, int), 5))[1])
+    # A sample whose truth is all void has no score: null in scores.json, never a bare NaN.
+    zero = np.zeros(len(jf.groundtruth.SYNWOODSCAPE_CLASSES), np.int64)
+    out = tmp_path / "o"
+    out.mkdir()
+    cli_bev._report(tmp_path, "dataset", out, [{"sample": "x", "observed_fraction": 0.5, "miou_fused": float("nan"),
+                                                "miou_ipm": float("nan")}],
+                    {"fused": [(zero, zero)], "ipm": [(zero, zero)], "truth_count": [zero + (np.arange(len(zero)) == 0)]})
+
+    def no_constants(c):
+        raise AssertionError(f"invalid JSON constant {c}")
+
+    scores = json.loads((out / "scores.json").read_text(), parse_constant=no_constants)
+    assert scores["samples"][0]["miou_fused"] is None and scores["miou"] == {"fused": None, "ipm": None}
+    # --samples is for datasets: rejected for a capture (as --frames is for a dataset).
+    cap = shared_bev_capture(tmp_path_factory)
+    result = CliRunner().invoke(app, ["bev", str(cap), "--out", str(tmp_path / "o2"), "--samples", "00000"])
+    assert result.exit_code == 2 and "--samples is for built datasets" in result.output.replace("\n", "")
