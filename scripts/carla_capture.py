@@ -423,11 +423,10 @@ def frame_writer(root, k, prev, curr, session, rig, config, views, tags):
     def write() -> None:
         faces = {cam: {f: (images(prev, ("camera", cam, f)), images(curr, ("camera", cam, f)),
                            curr[("camera", cam, f, "dvs")]) for f in config.faces} for cam in rig}
-        ego = records[0]
         out_views = {}
         for name, (camera, pose) in views.items():
             c = images(curr, ("view", name))
-            height = height_from_depth(decode_depth(c.depth), camera, pose, ego.location, ego.rotation)
+            height = height_from_depth(decode_depth(c.depth), camera, pose)
             out_views[name] = (images(prev, ("view", name)), c, height)
         write_carla_frame(root, frame, faces=faces, views=out_views, lidar=curr[("lidar",)],
                           semantic_lidar=curr[("semantic_lidar",)], radar=curr[("radar",)], imu=curr[("imu",)],

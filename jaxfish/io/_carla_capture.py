@@ -648,17 +648,13 @@ def carla_actor_records(world_actors: Iterable, snapshot_prev, snapshot, *, ego_
 
 
 # ---------------------------------------------------------------------------- height maps
-def height_from_depth(
-    depth_m: np.ndarray,
-    camera: Pinhole,
-    camera_to_vehicle: Pose,
-    ego_location: Sequence[float],
-    ego_rotation: Sequence[float],
-) -> np.ndarray:
-    """Height map ``(H, W)`` float32 of a pinhole view (the BEV or front camera) at t: world z of the
-    surface each pixel sees minus the ego actor's z (the ego origin is on the ground), from its planar
-    depth (metres), its ``camera_to_vehicle`` (OpenCV -> ISO) and the ego's CARLA transform; 0 where
-    the depth is CARLA's far value (sky)."""
+def height_from_depth(depth_m: np.ndarray, camera: Pinhole, camera_to_vehicle: Pose) -> np.ndarray:
+    """Height map ``(H, W)`` float32 of a pinhole view (the BEV or front camera) at t: the height of
+    the surface each pixel sees above the ego's ground plane, i.e. its z in the ISO 8855 vehicle
+    frame (metres; the vehicle origin is on the ground), from its planar depth (metres) and its
+    ``camera_to_vehicle`` (OpenCV -> ISO); 0 where the depth is CARLA's far value (sky). The same
+    convention as `jaxfish.bev.height_map` and the fusion; it differs from world z minus the ego's z
+    when the ego pitches or rolls."""
     d = np.asarray(depth_m, np.float64)
     h, w = d.shape
     if (w, h) != (camera.width, camera.height):
@@ -668,10 +664,7 @@ def height_from_depth(
     p_cam = np.stack([(u - cx) / fx * d, (v - cy) / fy * d, d], axis=-1)
     r_cv = np.asarray(camera_to_vehicle.rotation_matrix, np.float64)
     t_cv = np.asarray(camera_to_vehicle.translation, np.float64)
-    p_vehicle = p_cam @ r_cv.T + t_cv
-    r_ego = np.asarray(carla_rotation_matrix(*[float(a) for a in ego_rotation]), np.float64)
-    p_actor = p_vehicle @ CARLA_TO_ISO.T  # ISO -> the ego actor's CARLA frame
-    z = p_actor @ r_ego[2]  # world z relative to the ego origin
+    z = p_cam @ r_cv[2] + t_cv[2]  # vehicle-frame z of p_vehicle = R p_cam + t
     return np.where(d >= CARLA_MAX_DEPTH_M * (1.0 - 1e-6), 0.0, z).astype(np.float32)
 
 

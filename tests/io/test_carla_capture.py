@@ -357,10 +357,33 @@ def test_front_height_map_from_depth_matches_the_scene(embedded):
     ego = reader.ego(0)["transform"]
     depth = reader.view(0, "front").depth_m
     mounts = sensor_mounts(reader.rig(), SMALL)
-    got = height_from_depth(depth, front_camera(SMALL), mounts.front_camera_to_vehicle, ego["location"], ego["rotation"])
+    # The embedded scene's ego is level on flat ground: vehicle z and world z (its height writer) agree.
+    assert abs(ego["rotation"][0]) < 1e-6 and abs(ego["rotation"][2]) < 1e-6
+    got = height_from_depth(depth, front_camera(SMALL), mounts.front_camera_to_vehicle)
     np.testing.assert_allclose(got, reader.height(0, "front"), atol=CARLA_HEIGHT_FROM_DEPTH_M)
     with pytest.raises(CarlaCaptureError, match="does not match"):
-        height_from_depth(depth[:-1], front_camera(SMALL), mounts.front_camera_to_vehicle, ego["location"], ego["rotation"])
+        height_from_depth(depth[:-1], front_camera(SMALL), mounts.front_camera_to_vehicle)
+
+
+def test_height_is_vehicle_frame_z_when_the_ego_pitches():
+    # The ego pitched 6 degrees nose-up on flat ground (its origin on the ground): the world ground
+    # plane is n . p = 0 in the vehicle frame. Height = vehicle-frame z (as jaxfish.bev.height_map),
+    # not world z minus the ego's z (which is 0 on all of that ground).
+    cam = front_camera(SMALL)
+    pose = sensor_mounts(jf.default_rig(), SMALL).front_camera_to_vehicle
+    th = np.deg2rad(6.0)
+    n = np.array([np.sin(th), 0.0, np.cos(th)])  # world up in the pitched vehicle frame
+    fx, fy, cx, cy = (float(getattr(cam, k)) for k in ("fx", "fy", "cx", "cy"))
+    v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
+    ray = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1) @ np.asarray(pose.rotation_matrix, np.float64).T
+    t = np.asarray(pose.translation, np.float64)
+    s = -(n @ t) / (ray @ n)  # planar depth where each pixel's ray meets the ground
+    hits = (s > 0) & (s < 500.0)
+    depth = np.where(hits, s, 1000.0)
+    want = np.where(hits, (t + s[..., None] * ray)[..., 2], 0.0)
+    got = height_from_depth(depth.astype(np.float32), cam, pose)
+    assert hits.sum() > 0.3 * hits.size and np.abs(want[hits]).max() > 0.2  # the pitch shows
+    np.testing.assert_allclose(got, want, atol=CARLA_HEIGHT_FROM_DEPTH_M)
 
 
 def test_frame_assembly_rejects_bad_inputs(embedded, tmp_path):
