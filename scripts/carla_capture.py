@@ -63,6 +63,9 @@ from jaxfish.io._capture import rig_names
 from jaxfish.scene import CaptureConfig, front_camera, sensor_mounts
 
 DT_S = 0.1  # 10 FPS, SynWoodScape's rate
+#: The ego blueprint tried when --ego-blueprint is not given: CARLA 0.9.12+ spell the Lincoln
+#: MKZ 2017 ``mkz_2017``, 0.9.10 / 0.9.11 ``mkz2017``.
+DEFAULT_EGO_BLUEPRINTS = ("vehicle.lincoln.mkz_2017", "vehicle.lincoln.mkz2017")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -93,7 +96,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--front-size", type=int, nargs=2, default=(1632, 1224), metavar=("W", "H"), help="front camera size")
     p.add_argument("--vehicles", type=int, default=50, help="traffic vehicles on autopilot")
     p.add_argument("--walkers", type=int, default=50, help="pedestrians with AI controllers")
-    p.add_argument("--ego-blueprint", default="vehicle.lincoln.mkz_2017", help="ego vehicle blueprint id")
+    p.add_argument("--ego-blueprint", default=None,
+                   help="ego vehicle blueprint id; default: the Lincoln MKZ 2017 (vehicle.lincoln.mkz_2017, or "
+                        "vehicle.lincoln.mkz2017 on CARLA 0.9.10 / 0.9.11)")
     p.add_argument("--seed", type=int, default=0, help="seed of spawn points, blueprints, traffic manager")
     p.add_argument("--shutter-speed", type=float, default=200.0, help="fixed exposure: shutter speed (1/s)")
     p.add_argument("--iso", type=float, default=100.0, help="fixed exposure: ISO")
@@ -126,6 +131,8 @@ class Session:
         self.sensors: dict[tuple, object] = {}
         self.queues: dict[tuple, queue.Queue] = {}
         self.ego = None
+        self.ego_blueprint: str | None = None  # the blueprint id the ego was spawned from
+        self.dvs_missed: dict[tuple, set[int]] = {}  # per DVS sensor: frames recorded without a reading
 
     # ------------------------------------------------------------------ setup
     def synchronous(self) -> None:
@@ -139,11 +146,18 @@ class Session:
             self.tm.set_random_device_seed(self.args.seed)
 
     def spawn_ego(self, rng: random.Random):
+        """Spawn the ego at the first free shuffled spawn point; returns the other spawn points."""
         lib = self.world.get_blueprint_library()
-        found = lib.filter(self.args.ego_blueprint)
+        candidates = (self.args.ego_blueprint,) if self.args.ego_blueprint else DEFAULT_EGO_BLUEPRINTS
+        found = []
+        for name in candidates:
+            found = lib.filter(name)
+            if found:
+                break
         if not found:
-            raise CarlaCaptureError(f"--ego-blueprint {self.args.ego_blueprint!r}: no such blueprint on this server")
+            raise CarlaCaptureError(f"--ego-blueprint {' / '.join(candidates)}: no such blueprint on this server")
         bp = found[0]
+        self.ego_blueprint = bp.id
         if bp.has_attribute("role_name"):
             bp.set_attribute("role_name", "hero")
         random_color(bp, rng)
@@ -155,24 +169,30 @@ class Session:
                 self.ego = ego
                 self.actor_ids.append(ego.id)
                 ego.set_autopilot(True, self.args.tm_port)
-                return points
+                return [p for p in points if p is not sp]  # the ego's point is taken
         raise CarlaCaptureError("no free spawn point for the ego vehicle")
 
     def spawn_traffic(self, rng: random.Random, points) -> None:
         carla = self.carla
         lib = self.world.get_blueprint_library()
-        bps = [b for b in lib.filter("vehicle.*") if b.id != self.args.ego_blueprint]
+        bps = [b for b in lib.filter("vehicle.*") if b.id != self.ego_blueprint]
         batch = []
-        for sp in points[1: 1 + self.args.vehicles]:
+        if len(points) < self.args.vehicles:
+            print(f"note: only {len(points)} free spawn points for --vehicles {self.args.vehicles}")
+        for sp in points[: self.args.vehicles]:
             bp = rng.choice(bps)
             if bp.has_attribute("role_name"):
                 bp.set_attribute("role_name", "autopilot")
             random_color(bp, rng)
             batch.append(carla.command.SpawnActor(bp, sp).then(
                 carla.command.SetAutopilot(carla.command.FutureActor, True, self.args.tm_port)))
+        failed = []
         for r in self.client.apply_batch_sync(batch, True):
             if not r.error:
                 self.actor_ids.append(r.actor_id)
+            else:
+                failed.append(r.error)
+        report_failures("traffic vehicles", len(batch), failed)
         walker_bps = list(lib.filter("walker.pedestrian.*"))
         batch, speeds = [], []
         for _ in range(self.args.walkers):
@@ -185,15 +205,21 @@ class Session:
             speed = bp.get_attribute("speed").recommended_values[1] if bp.has_attribute("speed") else "1.4"
             batch.append(carla.command.SpawnActor(bp, carla.Transform(loc)))
             speeds.append(float(speed))
-        walkers = []
+        walkers, failed = [], []
+        if len(batch) < self.args.walkers:
+            print(f"note: {self.args.walkers - len(batch)} of {self.args.walkers} walkers got no navigation location")
         for r, speed in zip(self.client.apply_batch_sync(batch, True), speeds, strict=True):
             if not r.error:
                 walkers.append((r.actor_id, speed))
                 self.actor_ids.append(r.actor_id)
+            else:
+                failed.append(r.error)
+        report_failures("walkers", len(batch), failed)
         ctrl_bp = lib.find("controller.ai.walker")
         results = self.client.apply_batch_sync(
             [carla.command.SpawnActor(ctrl_bp, carla.Transform(), wid) for wid, _ in walkers], True)
         started = [(r.actor_id, speed) for r, (_, speed) in zip(results, walkers, strict=True) if not r.error]
+        report_failures("walker controllers", len(walkers), [r.error for r in results if r.error])
         self.controller_ids.extend(cid for cid, _ in started)  # destroyed on exit even if starting fails
         self.world.tick()  # controllers need one tick before they start
         for cid, speed in started:
@@ -233,6 +259,12 @@ class Session:
                 return data
             if data.frame > frame:  # should not happen in synchronous mode
                 raise CarlaCaptureError(f"sensor {'/'.join(key)}: got frame {data.frame} while waiting for {frame}")
+            missed = self.dvs_missed.get(key)
+            if missed is not None and data.frame in missed:  # a DVS reading that came after --dvs-wait
+                missed.discard(data.frame)
+                print(f"warning: sensor {'/'.join(key)}: its reading of frame {data.frame} came after --dvs-wait "
+                      f"{self.args.dvs_wait} s and was dropped (that frame lists it in carla_frame.json's dvs_missing); "
+                      "raise --dvs-wait", file=sys.stderr)
 
     def warm_up(self) -> None:
         """One tick whose readings are not needed (sensors may skip their first frames): the
@@ -255,8 +287,15 @@ class Session:
                 raise CarlaCaptureError(f"sensor {'/'.join(key)}: no data for frame {frame} within {self.args.timeout} s")
             data[key] = convert(key, item)
         deadline = time.monotonic() + self.args.dvs_wait  # the DVS sends nothing when no pixel changed
+        data["dvs_missing"] = []
         for key in dvs:
             item = self._get(key, frame, max(deadline - time.monotonic(), 0.0))
+            if item is None:
+                data["dvs_missing"].append(f"{key[1]}/{key[2]}")  # ("camera", cam, face, "dvs")
+                missed = self.dvs_missed.setdefault(key, set())
+                missed.add(frame)
+                while len(missed) > 8:  # a reading later than 8 ticks never comes: forget the oldest
+                    missed.discard(min(missed))
             data[key] = dvs_to_events(item, "/".join(key)) if item is not None else dvs_to_events(b"")
         return data
 
@@ -283,6 +322,13 @@ class Session:
         if self.tm is not None:
             self.tm.set_synchronous_mode(False)
         self.world.apply_settings(self.original_settings)
+
+
+def report_failures(what: str, tried: int, errors: list) -> None:
+    """Print how many of ``tried`` spawns of ``what`` failed, and the distinct reasons."""
+    if errors:
+        reasons = "; ".join(sorted({str(e) for e in errors})[:3])
+        print(f"note: {len(errors)} of {tried} {what} failed to spawn ({reasons})")
 
 
 def random_color(blueprint, rng: random.Random) -> None:
@@ -430,7 +476,8 @@ def frame_writer(root, k, prev, curr, session, rig, config, views, tags):
             out_views[name] = (images(prev, ("view", name)), c, height)
         write_carla_frame(root, frame, faces=faces, views=out_views, lidar=curr[("lidar",)],
                           semantic_lidar=curr[("semantic_lidar",)], radar=curr[("radar",)], imu=curr[("imu",)],
-                          gnss=curr[("gnss",)], prev_from_frame=k - 1 if k > 0 else None)
+                          gnss=curr[("gnss",)], prev_from_frame=k - 1 if k > 0 else None,
+                          dvs_missing=curr["dvs_missing"])
 
     return write
 

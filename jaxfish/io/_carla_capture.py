@@ -712,6 +712,7 @@ def write_carla_frame(
     imu: Mapping[str, Any],
     gnss: Mapping[str, Any],
     prev_from_frame: int | None = None,
+    dvs_missing: Sequence[str] = (),
 ) -> Path:
     """Write one CARLA frame in the capture layout: ``faces[camera][face] = (prev, curr, dvs events)``
     and ``views[name] = (prev, curr, height map at t)`` with raw BGRA images (written unchanged);
@@ -720,8 +721,17 @@ def write_carla_frame(
 
     ``prev_from_frame``: a frame already written whose t is this frame's t-1 (consecutive ticks): its
     ``*_curr.png`` files are copied as this frame's ``*_prev.png`` instead of encoding the same
-    pixels again (half the PNG encoding of a sequence); the caller guarantees they are the same tick."""
+    pixels again (half the PNG encoding of a sequence); the caller guarantees they are the same tick.
+
+    ``dvs_missing``: the faces (``"camera/face"``) whose DVS sent no reading for t within the wait,
+    written sorted to the frame's ``carla_frame.json`` as ``{"dvs_missing": [...]}`` (their
+    ``dvs.npy`` is empty: no pixel changed, or the reading came too late)."""
     d = frame_dir(root, frame.frame)
+    known = {f"{cam}/{face}" for cam, per_face in faces.items() for face in per_face}
+    unknown = sorted(set(dvs_missing) - known)
+    if unknown:
+        raise CarlaCaptureError(f"frame {frame.frame}: dvs_missing names faces {unknown} that are not written "
+                                f"(faces are 'camera/face': {sorted(known)})")
     before = frame_dir(root, prev_from_frame) if prev_from_frame is not None else None
     for cam, per_face in faces.items():
         for face, (prev, curr, events) in per_face.items():
@@ -740,6 +750,7 @@ def write_carla_frame(
         if hm.shape != curr.rgb.shape[:2]:
             raise CarlaCaptureError(f"{name}: height map {hm.shape} does not match the image {curr.rgb.shape[:2]}")
         write_image(d / name / "height_curr.exr", hm)
+    atomic_write_text(d / "carla_frame.json", json.dumps({"dvs_missing": sorted(set(dvs_missing))}, indent=1) + "\n")
     return write_frame(root, frame, cameras={}, views={}, lidar=lidar, semantic_lidar=semantic_lidar, radar=radar,
                        imu=imu, gnss=gnss)
 

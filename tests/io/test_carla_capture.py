@@ -327,7 +327,9 @@ def test_embedded_frame_through_the_carla_path_is_byte_identical(embedded, tmp_p
                       radar=radar_to_records(reader.radar(0).tobytes()), imu=imu_to_dict(fake_imu),
                       gnss=gnss_to_dict(fake_gnss))
     files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file())
-    assert files == sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
+    extra = out / "frames" / "000000" / "carla_frame.json"  # the CARLA path's one extra file
+    assert json.loads(extra.read_text()) == {"dvs_missing": []}
+    assert files == sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file() and p != extra)
     # EXR headers may carry the write time: the height maps are compared by value.
     different = [str(f) for f in files if f.suffix != ".exr" and (root / f).read_bytes() != (out / f).read_bytes()]
     assert not different, different
@@ -408,6 +410,10 @@ def test_frame_assembly_rejects_bad_inputs(embedded, tmp_path):
         write_carla_frame(tmp_path, frame, faces={"FV": {"front": (ok, ok, np.zeros(3))}}, views={},
                           lidar=np.zeros((0, 4)), semantic_lidar=np.zeros(0, SEMANTIC_LIDAR_DTYPE),
                           radar=np.zeros(0, RADAR_DTYPE), imu={}, gnss={})
+    with pytest.raises(CarlaCaptureError, match=r"dvs_missing names faces \['FV/nope'\]"):
+        write_carla_frame(tmp_path, frame, faces={"FV": {"front": (ok, ok, np.zeros(0, DVS_EVENT_DTYPE))}}, views={},
+                          lidar=np.zeros((0, 4)), semantic_lidar=np.zeros(0, SEMANTIC_LIDAR_DTYPE),
+                          radar=np.zeros(0, RADAR_DTYPE), imu={}, gnss={}, dvs_missing=["FV/nope"])
     assert json.loads((tmp_path / "capture.json").read_text())["frames"] == []  # nothing listed
 
 
@@ -693,6 +699,11 @@ def test_the_program_on_a_fake_carla(script, tmp_path, monkeypatch, capsys):
             assert a.read_bytes() == b.read_bytes()
     dvs = [reader.dvs(k, "FV", "left") for k in (0, 1)]
     assert sorted(d.size for d in dvs) == [0, 3] and all(d.dtype == DVS_EVENT_DTYPE for d in dvs)
+    # The faces without a DVS reading (the fake's DVS sends nothing on odd ticks) are recorded per frame.
+    missing = [json.loads((out / "WetSunset" / "frames" / f"{k:06d}" / "carla_frame.json").read_text())["dvs_missing"]
+               for k in (0, 1)]
+    for d, m in zip(dvs, missing, strict=True):
+        assert m == ([] if d.size else sorted(f"FV/{f}" for f in FIVE_FACES))
     actors = reader.actors(1)
     assert actors[0]["is_ego"] and {a["category"] for a in actors[1:]} <= {"four_wheeler", "two_wheeler", "pedestrian"}
     assert len(actors) == 1 + 2 + 1  # ego, two vehicles, one walker: no sensors or controllers
@@ -711,6 +722,59 @@ def test_the_program_on_a_fake_carla(script, tmp_path, monkeypatch, capsys):
     assert "frame 2/2 written" in printed and "lens_flare_intensity" in printed
     assert script.main(argv[:4] + ["--weather", "Sunny"]) == 2
     assert "weather preset 'Sunny' is unknown" in capsys.readouterr().err
+
+
+def _session(script, fake, argv):
+    return script.Session(fake, fake.Client("h", 1), script.parse_args(["--out", "x", *argv]))
+
+
+def test_ego_blueprint_fallback_spawn_points_and_failed_spawns(script, capsys):
+    import random
+
+    fake = _FakeCarla("0.9.11")
+    lib = fake.world.library
+    lib["vehicle.lincoln.mkz2017"] = _Blueprint("vehicle.lincoln.mkz2017", lib.pop("vehicle.lincoln.mkz_2017").values)
+    session = _session(script, fake, ["--vehicles", "6", "--walkers", "0"])
+    session.synchronous()
+    tried = []
+    spawn = fake.world.try_spawn_actor
+    fake.world.try_spawn_actor = lambda bp, t: (tried.append(t), spawn(bp, t) if len(tried) > 1 else None)[1]
+    points = session.spawn_ego(random.Random(0))  # 0.9.10 / 0.9.11 spelling; the first point is taken
+    assert session.ego_blueprint == "vehicle.lincoln.mkz2017" and len(tried) == 2
+    assert len(points) == 5 and tried[1] not in points and tried[0] in points  # the ego's point is removed
+    run = fake.world.run
+    used = []
+
+    def run_failing_one(command):
+        if command.kind == "spawn":
+            used.append(command.kw["transform"])
+            if len(used) == 2:
+                return SimpleNamespace(actor_id=0, error="collision at spawn position")
+        return run(command)
+
+    fake.world.run = run_failing_one
+    session.spawn_traffic(random.Random(0), points)
+    assert used == points and tried[1] not in used and len(session.actor_ids) == 1 + 4
+    out = capsys.readouterr().out
+    assert "only 5 free spawn points for --vehicles 6" in out
+    assert "1 of 5 traffic vehicles failed to spawn (collision at spawn position)" in out
+    del lib["vehicle.lincoln.mkz2017"]
+    with pytest.raises(CarlaCaptureError, match="mkz_2017 / vehicle.lincoln.mkz2017: no such blueprint"):
+        _session(script, fake, []).spawn_ego(random.Random(0))
+
+
+def test_a_late_dvs_reading_is_reported(script, capsys):
+    import queue
+
+    session = _session(script, _FakeCarla(), [])
+    key = ("camera", "FV", "left", "dvs")
+    session.queues[key] = q = queue.Queue()
+    session.dvs_missed[key] = {7}
+    q.put(SimpleNamespace(frame=6))  # stale, never recorded missing: dropped quietly
+    q.put(SimpleNamespace(frame=7))  # came after --dvs-wait for frame 7: dropped with a warning
+    assert session._get(key, 8, 0.0) is None and session.dvs_missed[key] == set()
+    err = capsys.readouterr().err
+    assert "camera/FV/left/dvs: its reading of frame 7 came after --dvs-wait" in err and "frame 6" not in err
 
 
 def test_vehicle_origin_option(script):
