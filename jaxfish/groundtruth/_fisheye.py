@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._numerics import materialize
 from ..cameras import AbstractCamera
 from ..reprojection import Lut, resample_bilinear, resample_depth, resample_nearest
 from ..transforms import Pose
@@ -237,6 +238,9 @@ def _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, po
     inst_p, sem_p = _labels(img_p, points[0], boxes_prev, carla_version, margin_m, fallback_m, k, capacity, cands[0],
                             capacity_many)
     inst, sem = _labels(img, points[1], boxes, carla_version, margin_m, fallback_m, k, capacity, cands[1], capacity_many)
+    # Materialise the labels: otherwise XLA fuses their tile scatters and transposes into the flow's
+    # and the boxes' consumers.
+    inst_p, inst = materialize((inst_p, inst), img.range_m.reshape(-1)[0])
     disp = box_displacements(boxes_prev, boxes)
     motion = motion_segmentation(inst.box_index, disp, boxes.class_id, threshold_m=motion_threshold_m)
     fwd_motion = rigid_motion(boxes_prev.box_to_world, boxes.box_to_world)
