@@ -9,6 +9,9 @@ import os
 import pickle
 import shutil
 import struct
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -178,3 +181,38 @@ def test_missing_or_corrupt_capture_files_fail_their_sample_only(small_capture, 
     assert "MVL/top/dvs.npy" in report.failed["00001"]
     assert "frame 7" in report.failed["00007"]
     assert "failed" in report.summary() and "actors.json" in report.summary()
+
+
+_KILL_SCRIPT = """
+import sys
+import jax
+jax.config.update("jax_enable_x64", True)  # as tests/conftest.py, so bytes match the reference build
+jax.config.update("jax_numpy_dtype_promotion", "strict")
+from jaxfish.dataset import build_dataset
+build_dataset(sys.argv[1], sys.argv[2])
+"""
+
+
+def test_sigkilled_build_resumes_to_the_same_bytes(small_capture, reference_build, tmp_path):
+    """A real `kill -9` while the second sample's files are being written, then a resume."""
+    out = tmp_path / "dataset"
+    log = tmp_path / "stderr.txt"
+    with open(log, "wb") as err:
+        proc = subprocess.Popen([sys.executable, "-c", _KILL_SCRIPT, str(small_capture), str(out)],
+                                stdout=subprocess.DEVNULL, stderr=err)
+        deadline = time.monotonic() + 240
+        try:
+            while time.monotonic() < deadline and proc.poll() is None:
+                if (out / ".done" / "00000.json").exists() and any(out.rglob("*00001*")):
+                    break
+                time.sleep(0.005)
+            killed = proc.poll() is None
+        finally:
+            proc.kill()  # SIGKILL
+            proc.wait(timeout=30)
+    assert is_complete(out, "00000"), log.read_text()[-2000:]
+    if killed:  # the usual case: sample 1 was cut off mid-way
+        assert not is_complete(out, "00001")
+    report = build_dataset(small_capture, out)
+    assert report.ok and report.skipped == ["00000"]
+    _assert_same_tree(reference_build[0], out)
