@@ -99,6 +99,7 @@ from ._flow import write_flo as write_flo
 from ._flow import write_flow_color as write_flow_color
 from ._flow import write_kitti_flow as write_kitti_flow
 from ._images import read_image as read_image
+from ._images import read_image_metadata as read_image_metadata
 from ._images import write_image as write_image
 from ._labels import DEPTH_COLOR_RANGE_M as DEPTH_COLOR_RANGE_M
 from ._labels import PALETTE_ATTRIBUTE as PALETTE_ATTRIBUTE

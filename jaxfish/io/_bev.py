@@ -15,10 +15,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import OpenImageIO as oiio
 
 from .._errors import ImageError, JaxfishError
-from ._atomic import atomic_path
+from ._images import read_image_metadata, write_image
 from ._labels import write_depth_npy
 
 #: Metadata key of the BEV scale/axes JSON in the BEV PNGs written by `write_bev_ground_truth`.
@@ -195,48 +194,15 @@ def bev_metadata(camera, camera_to_vehicle, **extra: Any) -> dict[str, Any]:
 def write_png_with_metadata(path: str | os.PathLike, image: np.ndarray, metadata: Mapping[str, Any]) -> Path:
     """uint8 PNG (``(H, W)`` or ``(H, W, C)``) with ``metadata`` as JSON in the text attribute
     `BEV_METADATA_ATTRIBUTE` (atomic)."""
-    path = Path(path)
     a = np.asarray(image)
     if a.dtype != np.uint8:
         raise ImageError(f"{path}: expected uint8 pixels, got {a.dtype}")
-    if a.ndim == 2:
-        a = a[..., None]  # OpenImageIO scrambles 2-D arrays (CONVENTIONS §8)
-    if a.ndim != 3:
-        raise ImageError(f"{path}: expected (H, W) or (H, W, C) pixels, got {a.shape}")
-    a = np.ascontiguousarray(a)
-    h, w, c = a.shape
-    with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None:
-            raise ImageError(f"{path}: cannot create writer ({oiio.geterror()})")
-        spec = oiio.ImageSpec(w, h, c, oiio.UINT8)
-        spec.attribute(BEV_METADATA_ATTRIBUTE, json.dumps(dict(metadata)))
-        if not out.open(str(tmp), spec) or not out.write_image(a):
-            err = out.geterror()
-            out.close()
-            raise ImageError(f"{path}: cannot write ({err})")
-        out.close()
-    return path
+    return write_image(path, a, metadata={BEV_METADATA_ATTRIBUTE: dict(metadata)})
 
 
 def read_bev_metadata(path: str | os.PathLike) -> dict[str, Any]:
     """The BEV scale and axes stored in a BEV PNG by `write_bev_ground_truth` (`bev_metadata`)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ImageError(f"{path}: image file not found")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise ImageError(f"{path}: cannot open ({oiio.geterror()})")
-    try:
-        value = inp.spec().get_string_attribute(BEV_METADATA_ATTRIBUTE, "")
-    finally:
-        inp.close()
-    if not value:
-        raise ImageError(f"{path}: no '{BEV_METADATA_ATTRIBUTE}' metadata")
-    try:
-        meta = json.loads(value)
-    except json.JSONDecodeError as e:
-        raise ImageError(f"{path}: metadata '{BEV_METADATA_ATTRIBUTE}' is not valid JSON ({e})") from e
+    meta = read_image_metadata(path, BEV_METADATA_ATTRIBUTE)
     if not isinstance(meta, dict):
         raise ImageError(f"{path}: metadata '{BEV_METADATA_ATTRIBUTE}' must be a JSON object, got {type(meta).__name__}")
     return meta

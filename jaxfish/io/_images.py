@@ -8,8 +8,11 @@ missing or corrupt file raises `ImageError` naming it; writes are atomic.
 
 from __future__ import annotations
 
+import json
 import os
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import OpenImageIO as oiio
@@ -59,9 +62,10 @@ def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None 
     return pixels
 
 
-def write_image(path: str | os.PathLike, pixels: np.ndarray) -> Path:
+def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mapping[str, Any] | None = None) -> Path:
     """Write ``(H, W)`` or ``(H, W, C)`` pixels, keeping the dtype (uint8/uint16 PNG, float16/float32
-    EXR). Atomic: on any error nothing is left at ``path``."""
+    EXR). ``metadata``: ``{attribute name: JSON-able value}`` stored as JSON text attributes (read
+    back with `read_image_metadata`). Atomic: on any error nothing is left at ``path``."""
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in _WRITABLE:
@@ -89,6 +93,8 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray) -> Path:
         if ext == ".exr":
             spec.attribute("compression", "zip")
         spec.attribute("oiio:UnassociatedAlpha", 1)  # the pixels are written as given
+        for name, value in (metadata or {}).items():
+            spec.attribute(name, json.dumps(value))
         if not out.open(str(tmp), spec):
             raise ImageError(f"{path}: cannot open for writing ({out.geterror()})")
         ok = out.write_image(a)
@@ -96,3 +102,24 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray) -> Path:
         if not ok:
             raise ImageError(f"{path}: write failed ({out.geterror()})")
     return path
+
+
+def read_image_metadata(path: str | os.PathLike, name: str) -> Any:
+    """The JSON value of the text attribute ``name`` stored by `write_image` (``metadata=``); a
+    missing file, attribute or invalid JSON raises `ImageError` naming the file and attribute."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: image file not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ImageError(f"{path}: cannot open ({oiio.geterror()})")
+    try:
+        value = inp.spec().get_string_attribute(name, "")
+    finally:
+        inp.close()
+    if not value:
+        raise ImageError(f"{path}: no '{name}' metadata")
+    try:
+        return json.loads(value)
+    except json.JSONDecodeError as e:
+        raise ImageError(f"{path}: metadata '{name}' is not valid JSON ({e})") from e

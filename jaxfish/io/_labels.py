@@ -12,11 +12,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import OpenImageIO as oiio
 
 from .._errors import ImageError
 from ._atomic import atomic_path, atomic_write_bytes, atomic_write_text
-from ._images import read_image, write_image
+from ._images import read_image, read_image_metadata, write_image
 
 #: Metadata key of the palette JSON in colour label PNGs.
 PALETTE_ATTRIBUTE = "jaxfish:palette"
@@ -46,36 +45,12 @@ def write_color_png(path: str | os.PathLike, rgb: np.ndarray, palette: Mapping[s
     a = np.ascontiguousarray(np.asarray(rgb, np.uint8))
     if a.ndim != 3 or a.shape[-1] != 3:
         raise ImageError(f"{path}: colour labels must be (H, W, 3) uint8, got {a.shape}")
-    if palette is None:
-        return write_image(path, a)
-    h, w, c = a.shape
-    with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None:
-            raise ImageError(f"{path}: cannot create writer ({oiio.geterror()})")
-        spec = oiio.ImageSpec(w, h, c, oiio.UINT8)
-        spec.attribute(PALETTE_ATTRIBUTE, json.dumps(palette))
-        if not out.open(str(tmp), spec) or not out.write_image(a):
-            err = out.geterror()
-            out.close()
-            raise ImageError(f"{path}: cannot write ({err})")
-        out.close()
-    return path
+    return write_image(path, a, metadata=None if palette is None else {PALETTE_ATTRIBUTE: palette})
 
 
 def read_palette(path: str | os.PathLike) -> dict[str, Any]:
     """The palette stored in a colour PNG by `write_color_png`."""
-    path = Path(path)
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise ImageError(f"{path}: cannot open ({oiio.geterror()})")
-    try:
-        value = inp.spec().get_string_attribute(PALETTE_ATTRIBUTE, "")
-    finally:
-        inp.close()
-    if not value:
-        raise ImageError(f"{path}: no '{PALETTE_ATTRIBUTE}' metadata")
-    return json.loads(value)
+    return read_image_metadata(path, PALETTE_ATTRIBUTE)
 
 
 def synwoodscape_palette_dict() -> dict[str, Any]:
