@@ -216,3 +216,25 @@ def test_sigkilled_build_resumes_to_the_same_bytes(small_capture, reference_buil
     report = build_dataset(small_capture, out)
     assert report.ok and report.skipped == ["00000"]
     _assert_same_tree(reference_build[0], out)
+
+
+def test_backward_flow_option_writes_the_t_to_t_minus_1_flow(small_capture, reference_build, tmp_path):
+    """``backward_flow``: the extra folder, on the t grid; the static ego body (zero forward flow)
+    has zero backward flow too; the other files equal the default build."""
+    from jaxfish.dataset import BuildOptions, build_sample
+    from jaxfish.io import read_flo, read_label_png
+
+    out = tmp_path / "dataset"
+    marker = build_sample(small_capture, out, 1, BuildOptions(backward_flow=True))
+    ref = reference_build[0]
+    for cam in ("FV", "RV", "MVL", "MVR"):
+        back = read_flo(out / "optical_flow_backward" / "raw_data" / f"00001_{cam}.flo")
+        fwd = read_flo(ref / "optical_flow" / "raw_data" / f"00001_{cam}.flo")
+        assert back.shape == fwd.shape and back.dtype == np.float32 and np.all(np.isfinite(back))
+        assert (out / "optical_flow_backward" / "color_coded" / f"00001_{cam}.png").is_file()
+        ego = read_label_png(ref / "semantic_annotations" / "gtLabels" / f"00001_{cam}.png") == 24
+        np.testing.assert_allclose(back[ego], 0.0, atol=1e-3)
+        assert np.abs(back).max() > 0  # the rest of the scene moves
+    for rel in marker["files"]:
+        if not rel.startswith("optical_flow_backward/"):
+            assert (out / rel).read_bytes() == (ref / rel).read_bytes(), rel
