@@ -18,7 +18,7 @@ import numpy as np
 
 from .._errors import ImageError, JaxfishError
 from ._images import read_image_metadata, write_image
-from ._labels import write_depth_npy
+from ._labels import _carla_version, _frame_motion, write_depth_npy
 
 #: Metadata key of the BEV scale/axes JSON in the BEV PNGs written by `write_bev_ground_truth`.
 BEV_METADATA_ATTRIBUTE = "jaxfish:bev"
@@ -54,26 +54,13 @@ def _pose_from_json(d: Any, where: str):
 def bev_sensor(reader) -> tuple[Any, Any]:
     """The capture's BEV camera (`Orthographic`, float32) and its ``camera_to_vehicle`` pose, from
     ``sensors.json`` (`CaptureError` naming the file and field when absent or malformed)."""
-    import jax.numpy as jnp
-
-    from ..cameras import Orthographic
     from ._capture import CaptureError
 
     where = f"{reader.root / 'sensors.json'}"
     sensors = reader.sensors()
     if "bev" not in sensors:
         raise CaptureError(f"{where}: field 'bev' missing (the capture has no BEV camera)")
-    bev = sensors["bev"]
-    try:
-        cam = Orthographic(float(bev["metres_per_pixel"]), width=int(bev["width"]), height=int(bev["height"]),
-                           cx=float(bev["cx"]), cy=float(bev["cy"]), dtype=jnp.float32)
-    except KeyError as e:
-        raise CaptureError(f"{where}: field 'bev.{e.args[0]}' missing") from e
-    except (TypeError, ValueError) as e:
-        raise CaptureError(f"{where}: field 'bev' malformed ({e})") from e
-    if "camera_to_vehicle" not in bev:
-        raise CaptureError(f"{where}: field 'bev.camera_to_vehicle' missing")
-    return cam, _pose_from_json(bev["camera_to_vehicle"], where)
+    return _bev_camera_and_pose(sensors["bev"], where, CaptureError, "bev.")
 
 
 def capture_bev_ground_truth(reader, frame: int, *, rays=None, backward_flow: bool = False,
@@ -95,8 +82,7 @@ def capture_bev_ground_truth(reader, frame: int, *, rays=None, backward_flow: bo
     from ._capture import CaptureError, frame_dir
 
     cam, c2v = bev_sensor(reader)
-    actors = reader.actors(frame)  # names the frame when it is missing
-    ego = reader.ego(frame)
+    actors, boxes_prev, boxes, v2w_p, v2w = _frame_motion(reader, frame)
     d = frame_dir(reader.root, frame) / "bev"
     for instant in ("prev", "curr"):
         for kind in ("rgb", "depth", "semantic"):
@@ -107,17 +93,7 @@ def capture_bev_ground_truth(reader, frame: int, *, rays=None, backward_flow: bo
     if view.depth_m.shape != (cam.height, cam.width):
         raise CaptureError(f"{d / 'depth_curr.png'}: BEV image {view.depth_m.shape} does not match sensors.json "
                            f"bev width x height {cam.width} x {cam.height}")
-    try:
-        boxes_prev = gt.boxes_from_actors(actors, "t-1")
-        boxes = gt.boxes_from_actors(actors, "t")
-        v2w_p = gt.vehicle_to_world_from_carla(np.asarray(ego["transform_prev"]["location"], np.float32),
-                                               np.asarray(ego["transform_prev"]["rotation"], np.float32))
-        v2w = gt.vehicle_to_world_from_carla(np.asarray(ego["transform"]["location"], np.float32),
-                                             np.asarray(ego["transform"]["rotation"], np.float32))
-    except (KeyError, TypeError, ValueError) as e:
-        raise CaptureError(f"{reader.root}: frame {frame}: malformed actors.json / ego.json ({e})") from e
-    tags = str(reader.meta.get("carla_semantic_tags", "0.9.10"))
-    version = carla_version or ("0.9.10" if tags in ("0.9.10", "0.9.11", "0.9.12", "0.9.13") else "0.9.14")
+    version = _carla_version(reader, carla_version)
     truth = gt.view_ground_truth(cam, c2v, view_prev, view, boxes_prev, boxes, v2w_p, v2w, backward_flow=backward_flow,
                                  carla_version=version, rays=rays, **options)
     exr = d / "height_curr.exr"
@@ -139,24 +115,31 @@ def bev_from_metadata(metadata: Mapping[str, Any], where: str = "BEV metadata") 
     """The BEV camera (`Orthographic`) and ``camera_to_vehicle`` pose described by a `bev_metadata`
     dict (e.g. a dataset's ``calibration_data/BEV.json`` or a BEV PNG's metadata); ``where`` names
     the source in errors."""
+    return _bev_camera_and_pose(metadata, where, ImageError, "")
+
+
+def _bev_camera_and_pose(d: Mapping[str, Any], where: str, error: type[JaxfishError], prefix: str):
+    """`Orthographic` (float32) and ``camera_to_vehicle`` pose of a BEV description ``d``; errors are
+    ``error`` naming ``where`` and the field (``prefix`` + name)."""
     import jax.numpy as jnp
 
     from ..cameras import Orthographic
 
     try:
-        cam = Orthographic(float(metadata["metres_per_pixel"]), width=int(metadata["width"]),
-                           height=int(metadata["height"]), cx=float(metadata["cx"]), cy=float(metadata["cy"]),
-                           dtype=jnp.float32)
+        cam = Orthographic(float(d["metres_per_pixel"]), width=int(d["width"]), height=int(d["height"]),
+                           cx=float(d["cx"]), cy=float(d["cy"]), dtype=jnp.float32)
     except KeyError as e:
-        raise ImageError(f"{where}: field '{e.args[0]}' missing") from e
+        raise error(f"{where}: field '{prefix}{e.args[0]}' missing") from e
     except (TypeError, ValueError) as e:
-        raise ImageError(f"{where}: malformed BEV scale ({e})") from e
-    if "camera_to_vehicle" not in metadata:
-        raise ImageError(f"{where}: field 'camera_to_vehicle' missing")
+        raise error(f"{where}: field '{prefix.rstrip('.') or 'BEV scale'}' malformed ({e})") from e
+    if "camera_to_vehicle" not in d:
+        raise error(f"{where}: field '{prefix}camera_to_vehicle' missing")
     try:
-        return cam, _pose_from_json(metadata["camera_to_vehicle"], where)
+        return cam, _pose_from_json(d["camera_to_vehicle"], where)
     except JaxfishError as e:
-        raise ImageError(str(e)) from e
+        if isinstance(e, error):
+            raise
+        raise error(str(e)) from e
 
 
 def load_bev_calibration(path: str | os.PathLike) -> tuple[Any, Any]:

@@ -259,6 +259,26 @@ def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.nd
 
 
 # ---------------------------------------------------------------------------- capture -> ground truth
+def _frame_motion(reader, frame: int):
+    """``(actors, boxes at t-1, boxes at t, vehicle -> world at t-1, at t)`` of a capture frame; a
+    malformed ``actors.json`` / ``ego.json`` raises `CaptureError` naming the frame."""
+    from .. import groundtruth as gt
+    from ._capture import CaptureError
+
+    actors = reader.actors(frame)  # names the frame when it is missing
+    ego = reader.ego(frame)
+    try:
+        boxes_prev = gt.boxes_from_actors(actors, "t-1")
+        boxes = gt.boxes_from_actors(actors, "t")
+        v2w_p = gt.vehicle_to_world_from_carla(np.asarray(ego["transform_prev"]["location"], np.float32),
+                                               np.asarray(ego["transform_prev"]["rotation"], np.float32))
+        v2w = gt.vehicle_to_world_from_carla(np.asarray(ego["transform"]["location"], np.float32),
+                                             np.asarray(ego["transform"]["rotation"], np.float32))
+    except (KeyError, TypeError, ValueError) as e:
+        raise CaptureError(f"{reader.root}: frame {frame}: malformed actors.json / ego.json ({e})") from e
+    return actors, boxes_prev, boxes, v2w_p, v2w
+
+
 def _carla_version(reader, carla_version: str | None) -> str:
     tags = str(reader.meta.get("carla_semantic_tags", "0.9.10"))
     return carla_version or ("0.9.10" if tags in ("0.9.10", "0.9.11", "0.9.12", "0.9.13") else "0.9.14")
@@ -292,17 +312,7 @@ def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None
     if lut is None:
         lut = build_lut(CubeRig(int(reader.meta.get("face_size", 0)) or reader.face(frame, camera, faces[0]).rgb.shape[0],
                                 faces=faces, dtype=jnp.float32), cam)
-    actors = reader.actors(frame)
-    ego = reader.ego(frame)
-    try:
-        boxes_prev = gt.boxes_from_actors(actors, "t-1")
-        boxes = gt.boxes_from_actors(actors, "t")
-        v2w_p = gt.vehicle_to_world_from_carla(np.asarray(ego["transform_prev"]["location"], np.float32),
-                                               np.asarray(ego["transform_prev"]["rotation"], np.float32))
-        v2w = gt.vehicle_to_world_from_carla(np.asarray(ego["transform"]["location"], np.float32),
-                                             np.asarray(ego["transform"]["rotation"], np.float32))
-    except (KeyError, TypeError, ValueError) as e:
-        raise CaptureError(f"{reader.root}: frame {frame}: malformed actors.json / ego.json ({e})") from e
+    actors, boxes_prev, boxes, v2w_p, v2w = _frame_motion(reader, frame)
     version = _carla_version(reader, carla_version)
     truth = gt.fisheye_ground_truth(lut, cam, calib.camera_to_vehicle, reader.faces_stack(frame, camera, "prev"),
                                     reader.faces_stack(frame, camera, "curr"), boxes_prev, boxes, v2w_p, v2w,
