@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import ImageError, JaxfishError
-from ._images import read_image_metadata, write_image
+from ._images import PNG_LEVEL, read_image_metadata, write_image
 from ._labels import _carla_version, _frame_motion, write_depth_npy
 
 #: Metadata key of the BEV scale/axes JSON in the BEV PNGs written by `write_bev_ground_truth`.
@@ -89,7 +89,7 @@ def capture_bev_ground_truth(reader, frame: int, *, rays=None, backward_flow: bo
             p = d / f"{kind}_{instant}.png"
             if not p.is_file():
                 raise CaptureError(f"{p}: file missing (BEV {kind} at {'t-1' if instant == 'prev' else 't'})")
-    view_prev, view = reader.view(frame, "bev", "prev"), reader.view(frame, "bev", "curr")
+    view_prev, view = reader.view(frame, "bev", "prev", actor_ids=False), reader.view(frame, "bev", "curr", actor_ids=False)
     if view.depth_m.shape != (cam.height, cam.width):
         raise CaptureError(f"{d / 'depth_curr.png'}: BEV image {view.depth_m.shape} does not match sensors.json "
                            f"bev width x height {cam.width} x {cam.height}")
@@ -174,13 +174,14 @@ def bev_metadata(camera, camera_to_vehicle, **extra: Any) -> dict[str, Any]:
             **extra}
 
 
-def write_png_with_metadata(path: str | os.PathLike, image: np.ndarray, metadata: Mapping[str, Any]) -> Path:
+def write_png_with_metadata(path: str | os.PathLike, image: np.ndarray, metadata: Mapping[str, Any], *,
+                            png_level: int = PNG_LEVEL) -> Path:
     """uint8 PNG (``(H, W)`` or ``(H, W, C)``) with ``metadata`` as JSON in the text attribute
     `BEV_METADATA_ATTRIBUTE` (atomic)."""
     a = np.asarray(image)
     if a.dtype != np.uint8:
         raise ImageError(f"{path}: expected uint8 pixels, got {a.dtype}")
-    return write_image(path, a, metadata={BEV_METADATA_ATTRIBUTE: dict(metadata)})
+    return write_image(path, a, metadata={BEV_METADATA_ATTRIBUTE: dict(metadata)}, png_level=png_level)
 
 
 def read_bev_metadata(path: str | os.PathLike) -> dict[str, Any]:
@@ -191,7 +192,8 @@ def read_bev_metadata(path: str | os.PathLike) -> dict[str, Any]:
     return meta
 
 
-def write_bev_ground_truth(root: str | os.PathLike, sample: str, result: Mapping[str, Any]) -> list[Path]:
+def write_bev_ground_truth(root: str | os.PathLike, sample: str, result: Mapping[str, Any], *,
+                           png_level: int = PNG_LEVEL) -> list[Path]:
     """Write the BEV extras of a `capture_bev_ground_truth` result under ``root``:
     ``bev_height/raw_data/{sample}_BEV.npy`` (float32 metres above the ground),
     ``bev_height/colormap/{sample}_BEV.png`` (`jaxfish.bev.colorize_height`) and
@@ -217,10 +219,10 @@ def write_bev_ground_truth(root: str | os.PathLike, sample: str, result: Mapping
     color = np.asarray(jbev.colorize_height(height))
     out.append(write_png_with_metadata(root / "bev_height" / "colormap" / f"{stem}.png", color,
                                        bev_metadata(cam, c2v, content="height above the ground (m), viridis",
-                                                    color_range_m=[lo, hi])))
+                                                    color_range_m=[lo, hi]), png_level=png_level))
     out.append(write_png_with_metadata(root / "bev_occupancy" / f"{stem}.png", occ.astype(np.uint8) * 255,
                                        bev_metadata(cam, c2v, content="occupancy: 255 = top surface higher than "
-                                                    f"{thr:g} m above the ground, 0 = free", occupancy_min_height_m=thr)))
+                                                    f"{thr:g} m above the ground, 0 = free", occupancy_min_height_m=thr), png_level=png_level))
     return out
 
 

@@ -108,13 +108,17 @@ def write_images(directory: Path, images: CameraImages, instant: str) -> None:
     write_image(directory / f"instance_{instant}.png", encode_instance(images.semantic, images.actor_id))
 
 
-def read_images(directory: Path, instant: str = "curr") -> CameraImages:
-    """Read back what `write_images` wrote (RGB uint8, depth metres float32, tags, actor ids)."""
+def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
+    """Read back what `write_images` wrote (RGB uint8, depth metres float32, tags, actor ids).
+    ``actor_ids=False`` skips the instance PNG (`CameraImages.actor_id` is then None): the ground
+    truth never reads it (instances come from the 3D boxes)."""
     if instant not in INSTANTS:
         raise CaptureError(f"{directory}: instant must be one of {INSTANTS}, got {instant!r}")
     rgb = bgra_to_rgb(read_image(directory / f"rgb_{instant}.png"))
     depth = decode_depth(read_image(directory / f"depth_{instant}.png"))
     sem = decode_semantic(read_image(directory / f"semantic_{instant}.png"))
+    if not actor_ids:
+        return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=None)  # type: ignore[arg-type]
     _, ids = decode_instance(read_image(directory / f"instance_{instant}.png"))
     return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=ids.astype(np.int32))
 
@@ -330,24 +334,26 @@ class CaptureReader:
         """The actors of a frame (``actors.json``)."""
         return self._read_json(self._frame(frame) / "actors.json")["actors"]
 
-    def face(self, frame: int, camera: str, face: str, instant: str = "curr") -> CameraImages:
-        """One cube face's images at ``"prev"`` (t-1) or ``"curr"`` (t)."""
-        return read_images(self._frame(frame) / "cameras" / camera / face, instant)
+    def face(self, frame: int, camera: str, face: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
+        """One cube face's images at ``"prev"`` (t-1) or ``"curr"`` (t) (``actor_ids``: see `read_images`)."""
+        return read_images(self._frame(frame) / "cameras" / camera / face, instant, actor_ids=actor_ids)
 
-    def faces_stack(self, frame: int, camera: str, instant: str = "curr") -> CameraImages:
-        """All faces of a camera stacked on a leading face axis (the `CubeRig` order of `faces`)."""
+    def faces_stack(self, frame: int, camera: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
+        """All faces of a camera stacked on a leading face axis (the `CubeRig` order of `faces`);
+        ``actor_ids=False`` skips the instance PNGs (`CameraImages.actor_id` None)."""
         # Decoding PNGs releases the GIL: reading the faces in threads is ~1.7x faster on 2 cores.
         with concurrent.futures.ThreadPoolExecutor(max(1, min(len(self.faces), os.cpu_count() or 1))) as pool:
-            imgs = list(pool.map(lambda f: self.face(frame, camera, f, instant), self.faces))
-        return CameraImages(*(np.stack([getattr(i, k) for i in imgs]) for k in ("rgb", "depth_m", "semantic", "actor_id")))
+            imgs = list(pool.map(lambda f: self.face(frame, camera, f, instant, actor_ids=actor_ids), self.faces))
+        return CameraImages(*(None if getattr(imgs[0], k) is None else np.stack([getattr(i, k) for i in imgs])
+                              for k in ("rgb", "depth_m", "semantic", "actor_id")))
 
     def dvs(self, frame: int, camera: str, face: str) -> np.ndarray:
         """DVS events of a face between t-1 and t (`DVS_EVENT_DTYPE`, t in ns)."""
         return self._npy(self._frame(frame) / "cameras" / camera / face / "dvs.npy")
 
-    def view(self, frame: int, name: str, instant: str = "curr") -> CameraImages:
-        """The ``"bev"`` or ``"front"`` camera's images."""
-        return read_images(self._frame(frame) / name, instant)
+    def view(self, frame: int, name: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
+        """The ``"bev"`` or ``"front"`` camera's images (``actor_ids``: see `read_images`)."""
+        return read_images(self._frame(frame) / name, instant, actor_ids=actor_ids)
 
     def height(self, frame: int, name: str = "bev") -> np.ndarray:
         """Height map (metres above the ground, float32) of the ``"bev"`` or ``"front"`` view at t."""

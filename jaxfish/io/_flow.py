@@ -13,7 +13,7 @@ import numpy as np
 
 from .._errors import ImageError
 from ._atomic import atomic_path
-from ._images import read_image, write_image
+from ._images import PNG_LEVEL, read_image, write_image
 
 #: The ``.flo`` header tag (float32 202021.25, the bytes "PIEH").
 FLO_TAG = 202021.25
@@ -53,7 +53,8 @@ def read_flo(path: str | os.PathLike) -> np.ndarray:
     return np.frombuffer(data[12:], "<f4").reshape(h, w, 2).astype(np.float32)
 
 
-def write_kitti_flow(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarray | None = None) -> Path:
+def write_kitti_flow(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarray | None = None, *,
+                     png_level: int = PNG_LEVEL) -> Path:
     """Write KITTI's 16-bit PNG: channels ``(u, v, valid)`` as uint16 with
     ``stored = round(64 value + 2**15)`` (clipped to the uint16 range, i.e. |flow| < 512 px);
     invalid pixels store 0 in every channel."""
@@ -64,7 +65,7 @@ def write_kitti_flow(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarra
     q = np.clip(np.rint(f * KITTI_FLOW_SCALE + KITTI_FLOW_OFFSET), 0, 65535).astype(np.uint16)
     out = np.concatenate([q, ok[..., None].astype(np.uint16)], axis=-1)
     out = np.where(ok[..., None], out, 0).astype(np.uint16)
-    return write_image(path, out)
+    return write_image(path, out, png_level=png_level)
 
 
 def read_kitti_flow(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
@@ -78,7 +79,7 @@ def read_kitti_flow(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_flow_color(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarray | None = None,
-                     *, max_radius: float | None = None) -> Path:
+                     *, max_radius: float | None = None, png_level: int = PNG_LEVEL) -> Path:
     """Write the standard colour coding of a flow field (`jaxfish.groundtruth.flow_to_color`) as
     an RGB PNG."""
     import jax
@@ -86,4 +87,4 @@ def write_flow_color(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarra
     from ..groundtruth import flow_to_color
 
     rgb = jax.jit(flow_to_color, static_argnames="max_radius")(np.asarray(flow, np.float32), valid=valid, max_radius=max_radius)
-    return write_image(path, np.asarray(rgb))
+    return write_image(path, np.asarray(rgb), png_level=png_level)

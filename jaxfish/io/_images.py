@@ -21,6 +21,13 @@ from .._errors import ImageError
 from ._atomic import atomic_path
 
 _WRITABLE = {".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg"}
+#: zlib level of the PNGs `write_image` writes by default (1 = fastest). With the Up row filter
+#: (`PNG_FILTER`), level 1 encodes ~4x faster than OpenImageIO's default (level 6, no filter) and
+#: decodes ~1.5x faster, for ~40 % more bytes (measured on jaxfish's dataset images; see
+#: ``docs/dataset.md``).
+PNG_LEVEL = 1
+#: PNG row filter of every written PNG: "Up" (libpng ``PNG_FILTER_UP``; each row minus the row above).
+PNG_FILTER = 0x20
 _DTYPES = {
     np.dtype(np.uint8): oiio.UINT8,
     np.dtype(np.uint16): oiio.UINT16,
@@ -62,10 +69,13 @@ def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None 
     return pixels
 
 
-def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mapping[str, Any] | None = None) -> Path:
+def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mapping[str, Any] | None = None,
+                png_level: int = PNG_LEVEL) -> Path:
     """Write ``(H, W)`` or ``(H, W, C)`` pixels, keeping the dtype (uint8/uint16 PNG, float16/float32
     EXR). ``metadata``: ``{attribute name: JSON-able value}`` stored as JSON text attributes (read
-    back with `read_image_metadata`). Atomic: on any error nothing is left at ``path``."""
+    back with `read_image_metadata`). ``png_level``: zlib level 0-9 of a PNG (default `PNG_LEVEL`;
+    every PNG uses the `PNG_FILTER` row filter); the same pixels and level always give the same
+    bytes. Atomic: on any error nothing is left at ``path``."""
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in _WRITABLE:
@@ -79,6 +89,8 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
         raise ImageError(f"{path}: unsupported pixel dtype {a.dtype}")
     if ext == ".png" and a.dtype not in (np.uint8, np.uint16):
         raise ImageError(f"{path}: PNG stores uint8/uint16 pixels, got {a.dtype} (use .exr for floats)")
+    if isinstance(png_level, bool) or not (isinstance(png_level, int) and 0 <= png_level <= 9):
+        raise ImageError(f"{path}: png_level must be an integer from 0 to 9, got {png_level!r}")
     if a.ndim == 2:
         a = a[..., None]  # OpenImageIO scrambles 2-D arrays (CONVENTIONS §8)
     if a.ndim != 3 or a.shape[0] == 0 or a.shape[1] == 0:
@@ -92,6 +104,9 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
         spec = oiio.ImageSpec(w, h, c, _DTYPES[a.dtype])
         if ext == ".exr":
             spec.attribute("compression", "zip")
+        elif ext == ".png":
+            spec.attribute("png:compressionLevel", png_level)
+            spec.attribute("png:filter", PNG_FILTER)
         spec.attribute("oiio:UnassociatedAlpha", 1)  # the pixels are written as given
         for name, value in (metadata or {}).items():
             spec.attribute(name, json.dumps(value))

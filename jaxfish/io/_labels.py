@@ -15,13 +15,13 @@ import numpy as np
 
 from .._errors import ImageError
 from ._atomic import atomic_path, atomic_write_bytes, atomic_write_text
-from ._images import read_image, read_image_metadata, write_image
+from ._images import PNG_LEVEL, read_image, read_image_metadata, write_image
 
 #: Metadata key of the palette JSON in colour label PNGs.
 PALETTE_ATTRIBUTE = "jaxfish:palette"
 
 
-def write_label_png(path: str | os.PathLike, labels: np.ndarray) -> Path:
+def write_label_png(path: str | os.PathLike, labels: np.ndarray, *, png_level: int = PNG_LEVEL) -> Path:
     """Index PNG of a label map (uint8 if every label fits, else uint16); negative labels -> 0."""
     a = np.asarray(labels)
     if a.ndim != 2:
@@ -30,7 +30,7 @@ def write_label_png(path: str | os.PathLike, labels: np.ndarray) -> Path:
     dtype = np.uint8 if a.max(initial=0) < 256 else np.uint16
     if a.max(initial=0) > 65535:
         raise ImageError(f"{path}: labels above 65535 do not fit a PNG")
-    return write_image(path, a.astype(dtype))
+    return write_image(path, a.astype(dtype), png_level=png_level)
 
 
 def read_label_png(path: str | os.PathLike) -> np.ndarray:
@@ -38,14 +38,15 @@ def read_label_png(path: str | os.PathLike) -> np.ndarray:
     return read_image(path)[..., 0].astype(np.int32)
 
 
-def write_color_png(path: str | os.PathLike, rgb: np.ndarray, palette: Mapping[str, Any] | None = None) -> Path:
+def write_color_png(path: str | os.PathLike, rgb: np.ndarray, palette: Mapping[str, Any] | None = None, *,
+                    png_level: int = PNG_LEVEL) -> Path:
     """RGB uint8 PNG with ``palette`` (JSON-able, e.g. ``{"classes": [...], "colors": [...]}``)
     stored as the PNG text attribute `PALETTE_ATTRIBUTE` (atomic)."""
     path = Path(path)
     a = np.ascontiguousarray(np.asarray(rgb, np.uint8))
     if a.ndim != 3 or a.shape[-1] != 3:
         raise ImageError(f"{path}: colour labels must be (H, W, 3) uint8, got {a.shape}")
-    return write_image(path, a, metadata=None if palette is None else {PALETTE_ATTRIBUTE: palette})
+    return write_image(path, a, metadata=None if palette is None else {PALETTE_ATTRIBUTE: palette}, png_level=png_level)
 
 
 def read_palette(path: str | os.PathLike) -> dict[str, Any]:
@@ -314,8 +315,8 @@ def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None
                                 faces=faces, dtype=jnp.float32), cam)
     actors, boxes_prev, boxes, v2w_p, v2w = _frame_motion(reader, frame)
     version = _carla_version(reader, carla_version)
-    truth = gt.fisheye_ground_truth(lut, cam, calib.camera_to_vehicle, reader.faces_stack(frame, camera, "prev"),
-                                    reader.faces_stack(frame, camera, "curr"), boxes_prev, boxes, v2w_p, v2w,
+    truth = gt.fisheye_ground_truth(lut, cam, calib.camera_to_vehicle, reader.faces_stack(frame, camera, "prev", actor_ids=False),
+                                    reader.faces_stack(frame, camera, "curr", actor_ids=False), boxes_prev, boxes, v2w_p, v2w,
                                     backward_flow=backward_flow, carla_version=version, rays=rays, **options)
     cols = {k: [] for k in ("face", "x", "y", "t", "pol")}
     for i, face in enumerate(faces):
@@ -349,7 +350,7 @@ _JIT: dict[str, Any] | None = None
 
 
 def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str, result: Mapping[str, Any], *,
-                              motion_threshold_m: float = 0.5) -> list[Path]:
+                              motion_threshold_m: float = 0.5, png_level: int = PNG_LEVEL) -> list[Path]:
     """Write one camera's ground truth (a `capture_ground_truth` result, or the BEV's
     `capture_bev_ground_truth` result with camera ``"BEV"``) in SynWoodScape's layout under
     ``root`` with file stem ``{sample}_{camera}``: ``rgb_images``, ``previous_images``
@@ -361,7 +362,8 @@ def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str,
     dtype, ns), tonic .npz (µs), color_coded .png}`` (skipped when ``result["events"] is None``,
     e.g. the BEV), ``box_2d_annotations`` (visible boxes) and ``box_2d_full_annotations`` (full
     extent) CSV. The per-sample files (3D boxes, displacements) are `write_sample_ground_truth`'s.
-    Every file is written atomically and deterministically. Returns the paths written."""
+    Every file is written atomically and deterministically; PNGs with zlib level
+    ``png_level``. Returns the paths written."""
     from ._events import carla_to_tonic, write_events_npy
     from ._flow import write_flo, write_flow_color, write_kitti_flow
 
@@ -373,37 +375,39 @@ def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str,
     out: list[Path] = []
     add = out.append
     h, w = np.asarray(t.images.valid).shape
-    add(write_image(root / "rgb_images" / f"{stem}.png", np.asarray(t.images.rgb)))
-    add(write_image(root / "previous_images" / f"{stem}_prev.png", np.asarray(t.images_prev.rgb)))
+    add(write_image(root / "rgb_images" / f"{stem}.png", np.asarray(t.images.rgb), png_level=png_level))
+    add(write_image(root / "previous_images" / f"{stem}_prev.png", np.asarray(t.images_prev.rgb), png_level=png_level))
     rng = np.asarray(t.images.range_m, np.float32)
     add(write_depth_npy(root / "depth_maps" / "raw_data" / f"{stem}.npy", rng))
     add(write_depth_npy(root / "depth_maps" / "z_depth" / f"{stem}.npy",
                         np.asarray(jit["z_depth"](result["camera"], t.images.range_m))))
-    add(write_image(root / "depth_maps" / "colormap" / f"{stem}.png", depth_to_color(rng)))
+    add(write_image(root / "depth_maps" / "colormap" / f"{stem}.png", depth_to_color(rng), png_level=png_level))
     pal = synwoodscape_palette_dict()
     sem = np.asarray(t.semantic)
-    add(write_label_png(root / "semantic_annotations" / "gtLabels" / f"{stem}.png", sem))
-    add(write_color_png(root / "semantic_annotations" / "rgbLabels" / f"{stem}.png", np.asarray(jit["colorize"](sem)), pal))
+    add(write_label_png(root / "semantic_annotations" / "gtLabels" / f"{stem}.png", sem, png_level=png_level))
+    add(write_color_png(root / "semantic_annotations" / "rgbLabels" / f"{stem}.png", np.asarray(jit["colorize"](sem)), pal,
+                        png_level=png_level))
     ids = np.asarray(t.instances.actor_id)
-    add(write_label_png(root / "instance_annotations" / "gtLabels" / f"{stem}.png", ids))
+    add(write_label_png(root / "instance_annotations" / "gtLabels" / f"{stem}.png", ids, png_level=png_level))
     add(write_color_png(root / "instance_annotations" / "rgbLabels" / f"{stem}.png",
                         np.asarray(jit["instance_colors"](ids)),
-                        {"colors": "jaxfish.groundtruth.instance_colors(actor_id)", "background": [0, 0, 0]}))
+                        {"colors": "jaxfish.groundtruth.instance_colors(actor_id)", "background": [0, 0, 0]}, png_level=png_level))
     mot = np.asarray(t.motion).astype(np.uint8) * 255
-    add(write_label_png(root / "motion_annotations" / "gtLabels" / f"{stem}.png", mot))
+    add(write_label_png(root / "motion_annotations" / "gtLabels" / f"{stem}.png", mot, png_level=png_level))
     add(write_color_png(root / "motion_annotations" / "rgbLabels" / f"{stem}.png", np.repeat(mot[..., None], 3, -1),
                         {"classes": ["static", "moving"], "colors": [[0, 0, 0], [255, 255, 255]],
-                         "threshold_m": motion_threshold_m}))
+                         "threshold_m": motion_threshold_m}, png_level=png_level))
     fl, fv = np.asarray(t.flow.flow), np.asarray(t.flow.valid)
     add(write_flo(root / "optical_flow" / "raw_data" / f"{stem}.flo", np.where(fv[..., None], fl, 0.0)))
-    add(write_kitti_flow(root / "optical_flow" / "kitti" / f"{stem}.png", fl, fv))
-    add(write_flow_color(root / "optical_flow" / "color_coded" / f"{stem}.png", fl, fv))
+    add(write_kitti_flow(root / "optical_flow" / "kitti" / f"{stem}.png", fl, fv, png_level=png_level))
+    add(write_flow_color(root / "optical_flow" / "color_coded" / f"{stem}.png", fl, fv, png_level=png_level))
     ev = result.get("events")
     if ev is not None:
         add(write_events_npy(root / "dvs_signals" / "raw_data" / f"{stem}.npy", ev))
         add(write_npz(root / "dvs_signals" / "tonic" / f"{stem}.npz", events=carla_to_tonic(ev),
                       time_unit=np.asarray("us"), sensor_size=np.asarray([w, h, 2], np.int64)))
-        add(write_image(root / "dvs_signals" / "color_coded" / f"{stem}.png", events_color(ev, width=w, height=h)))
+        add(write_image(root / "dvs_signals" / "color_coded" / f"{stem}.png", events_color(ev, width=w, height=h),
+                                png_level=png_level))
     cls = np.asarray(boxes.class_id)
     add(write_boxes_2d_csv(root / "box_2d_annotations" / f"{stem}.txt",
                            boxes_2d_rows(np.asarray(t.boxes_2d.xyxy), np.asarray(t.boxes_2d.present), cls)))
