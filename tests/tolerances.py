@@ -56,3 +56,6 @@ CARLA_HEIGHT_FROM_DEPTH_M = 2e-3
 BEV_EAGER_JIT_CELL_FRACTION = 2e-3  # fused cells that may differ between eager / jit / vmap (float32 rounding at cell edges)
 BEV_GRID_M = 1e-4  # BEV pixel <-> vehicle ground point vs the documented formula (float32, 10 m)
 BEV_FLOW_UNIFORM_PX = 1e-3  # top-view flow under pure ego translation vs the uniform closed form (float32)
+# Batched rig ground truth: float32 flow of differently fused programs (pose products at up to 1000 m).
+RIG_FLOW_PX_F32 = 5e-3
+RIG_RANGE_REL_F32 = 1e-5

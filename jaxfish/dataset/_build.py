@@ -206,7 +206,7 @@ def build_sample(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fra
         CaptureReader,
         atomic_write_text,
         capture_bev_ground_truth,
-        capture_ground_truth,
+        capture_rig_ground_truth,
         write_bev_ground_truth,
         write_camera_ground_truth,
         write_sample_ground_truth,
@@ -233,10 +233,9 @@ def build_sample(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fra
     try:
         first = None
         cams = [c for c in FISHEYE_CAMERAS if c in reader.cameras] + [c for c in reader.cameras if c not in FISHEYE_CAMERAS]
-        for cam in cams:
-            lut, rays, emap = _camera_constants(reader, cam)
-            res = capture_ground_truth(reader, frame, cam, lut=lut, rays=rays, event_map=emap,
-                                       backward_flow=options.backward_flow, motion_threshold_m=thr)
+        results = capture_rig_ground_truth(reader, frame, cams, constants={c: _camera_constants(reader, c) for c in cams},
+                                           backward_flow=options.backward_flow, motion_threshold_m=thr) if cams else []
+        for cam, res in zip(cams, results, strict=True):
             first = first or res
             write(write_camera_ground_truth, out, sid, cam, res, motion_threshold_m=thr, png_level=png)
             if options.backward_flow:

@@ -62,3 +62,4 @@ from ._instances import instance_segmentation as instance_segmentation
 from ._instances import max_box_candidates as max_box_candidates
 from ._instances import motion_segmentation as motion_segmentation
 from ._instances import tile_capacity as tile_capacity
+from ._rig import rig_ground_truth as rig_ground_truth

@@ -3,7 +3,6 @@ whole per-camera ground truth of one sample."""
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import equinox as eqx
@@ -217,8 +216,7 @@ def _world_points(camera, rays, images: FisheyeImages, cam_to_world: Pose):
     return apply_pose(cam_to_world, pts), ok & images.valid
 
 
-@functools.partial(jax.jit, static_argnums=(8, 9))
-def _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach):
+def _counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach):
     ks, ns, ms, cs, pts = [], [], [], [], []
     for im, c2w_, bx in ((img_p, c2w_p, boxes_prev), (img, c2w, boxes)):
         world, ok = _world_points(camera, rays, im, c2w_)
@@ -232,8 +230,10 @@ def _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_v
     return jnp.max(jnp.stack(ks)), jnp.max(jnp.stack(ns)), jnp.max(jnp.stack(ms)), tuple(cs), tuple(pts)
 
 
-@functools.partial(jax.jit, static_argnums=tuple(range(10, 19)))
-def _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, points, carla_version, motion_threshold_m,
+_jit_counts = jax.jit(_counts, static_argnums=(8, 9))
+
+
+def _rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, points, carla_version, motion_threshold_m,
               backward_flow, margin_m, fallback_m, k, capacity, capacity_many, surface_samples):
     inst_p, sem_p = _labels(img_p, points[0], boxes_prev, carla_version, margin_m, fallback_m, k, capacity, cands[0],
                             capacity_many)
@@ -257,3 +257,6 @@ def _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, po
         images_prev=img_p, images=img, semantic_prev=sem_p, semantic=sem, instances_prev=inst_p, instances=inst,
         motion=motion, displacement_m=disp, flow=flow, flow_backward=back, boxes_2d=b2d, boxes_2d_full=full,
     )
+
+
+_jit_rest = jax.jit(_rest, static_argnums=tuple(range(10, 19)))

@@ -104,7 +104,9 @@ from ._images import write_image as write_image
 from ._labels import DEPTH_COLOR_RANGE_M as DEPTH_COLOR_RANGE_M
 from ._labels import PALETTE_ATTRIBUTE as PALETTE_ATTRIBUTE
 from ._labels import boxes_2d_rows as boxes_2d_rows
+from ._labels import camera_events as camera_events
 from ._labels import capture_ground_truth as capture_ground_truth
+from ._labels import capture_rig_ground_truth as capture_rig_ground_truth
 from ._labels import depth_to_color as depth_to_color
 from ._labels import read_boxes_2d_csv as read_boxes_2d_csv
 from ._labels import read_boxes_3d_pickle as read_boxes_3d_pickle

@@ -318,20 +318,78 @@ def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None
     truth = gt.fisheye_ground_truth(lut, cam, calib.camera_to_vehicle, reader.faces_stack(frame, camera, "prev", actor_ids=False),
                                     reader.faces_stack(frame, camera, "curr", actor_ids=False), boxes_prev, boxes, v2w_p, v2w,
                                     backward_flow=backward_flow, carla_version=version, rays=rays, **options)
+    events = camera_events(reader, frame, camera, gt.event_map_from_lut(lut) if event_map is None else event_map)
+    return {"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
+            "vehicle_to_world": v2w, "events": events, "camera": cam, "actors": actors}
+
+
+def camera_events(reader, frame: int, camera: str, event_map) -> np.ndarray:
+    """The DVS events of a capture camera's faces mapped to its fisheye through ``event_map``
+    (`jaxfish.groundtruth.event_map_from_lut`): CARLA-dtype events, t in ns, time order."""
     cols = {k: [] for k in ("face", "x", "y", "t", "pol")}
-    for i, face in enumerate(faces):
+    for i, face in enumerate(reader.faces):
         ev = reader.dvs(frame, camera, face)
         cols["face"].append(np.full(ev.shape[0], i, np.int32))
         for k in ("x", "y", "t", "pol"):
             cols[k].append(ev[k])
     cat = {k: np.concatenate(v) for k, v in cols.items()}
-    if event_map is None:
-        event_map = gt.event_map_from_lut(lut)
-    h, w = lut.target_shape
-    events = map_face_events(np.asarray(event_map.targets), int(w), int(event_map.face_size), cat["face"], cat["x"],
-                             cat["y"], cat["t"], cat["pol"], fanout=np.asarray(event_map.fanout))
-    return {"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
-            "vehicle_to_world": v2w, "events": events, "camera": cam, "actors": actors}
+    return map_face_events(np.asarray(event_map.targets), int(event_map.width), int(event_map.face_size), cat["face"],
+                           cat["x"], cat["y"], cat["t"], cat["pol"], fanout=np.asarray(event_map.fanout))
+
+
+def capture_rig_ground_truth(reader, frame: int, cameras: Sequence[str] | None = None, *, constants=None,
+                             backward_flow: bool = False, carla_version: str | None = None,
+                             batch: str = "auto", **options: Any) -> list[dict[str, Any]]:
+    """`capture_ground_truth` for several fisheye cameras of a capture frame at once (default: all
+    of them, in `CaptureReader.cameras` order), through `jaxfish.groundtruth.rig_ground_truth`:
+    the faces of every camera are decoded in threads, the instance segmentation's static sizes
+    are found in one host round trip, and ``batch`` chooses how the cameras are mapped.
+
+    ``constants`` ``{camera: (lut, rays, event_map)}``: the per-calibration constants (built here
+    when omitted). Returns one `capture_ground_truth` result dict per camera, in order."""
+    import concurrent.futures
+
+    import jax.numpy as jnp
+
+    from .. import groundtruth as gt
+    from ..scene import CameraImages
+    from ..transforms import Pose
+    from ._capture import CaptureError
+
+    rig = reader.rig()
+    names = list(reader.cameras if cameras is None else cameras)
+    missing = [c for c in names if c not in rig]
+    if missing or not names:
+        raise CaptureError(f"{reader.root}/calibration: camera(s) {missing or names} missing (have {sorted(rig)})")
+    calibs = [rig[c].astype(jnp.float32) for c in names]
+    cams = [cal.camera.astype(jnp.float32) for cal in calibs]
+    if constants is None:
+        from ..reprojection import CubeRig, build_lut
+
+        size = int(reader.meta.get("face_size", 0)) or reader.face(frame, names[0], reader.faces[0]).rgb.shape[0]
+        constants = {}
+        for c, cam in zip(names, cams, strict=True):
+            lut = build_lut(CubeRig(size, faces=tuple(reader.faces), dtype=jnp.float32), cam)
+            constants[c] = (lut, gt.pixel_rays(cam), gt.event_map_from_lut(lut))
+    actors, boxes_prev, boxes, v2w_p, v2w = _frame_motion(reader, frame)
+    version = _carla_version(reader, carla_version)
+    jobs = [(c, inst, f) for inst in ("prev", "curr") for c in names for f in reader.faces]
+    # PNG decoding releases the GIL: every face of every camera in one pool of threads.
+    with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs), os.cpu_count() or 1))) as pool:
+        imgs = dict(zip(jobs, pool.map(lambda j: reader.face(frame, j[0], j[2], j[1], actor_ids=False), jobs),
+                        strict=True))
+    stacked = {inst: CameraImages(*(np.stack([np.stack([getattr(imgs[(c, inst, f)], k) for f in reader.faces])
+                                              for c in names]) for k in ("rgb", "depth_m", "semantic")), None)
+               for inst in ("prev", "curr")}
+    c2v = Pose(np.stack([np.asarray(cal.camera_to_vehicle.rotation_matrix, np.float32) for cal in calibs]),
+               np.stack([np.asarray(cal.camera_to_vehicle.translation, np.float32) for cal in calibs]))
+    truths = gt.rig_ground_truth([constants[c][0] for c in names], cams, c2v, stacked["prev"], stacked["curr"],
+                                 boxes_prev, boxes, v2w_p, v2w, rays=[constants[c][1] for c in names],
+                                 backward_flow=backward_flow, carla_version=version, batch=batch, stacked=False,
+                                 **options)
+    return [{"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
+             "vehicle_to_world": v2w, "events": camera_events(reader, frame, c, constants[c][2]), "camera": cam,
+             "actors": actors} for c, cam, truth in zip(names, cams, truths, strict=True)]
 
 
 def _jitted():
