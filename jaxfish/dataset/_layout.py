@@ -44,6 +44,8 @@ LAYOUT: tuple[dict[str, Any], ...] = (
        "RGB image at t-1 (the previous frame, 0.1 s earlier)"),
     _e("depth", "depth_maps/raw_data/{sample}_{camera}.npy", "npy", "float32", "(H, W)", "metres", "all",
        "Euclidean range along each pixel's ray at t; sky / beyond 1000 m = 1000; 0 = pixel without a ray"),
+    _e("depth_exr", "depth_maps/exr/{sample}_{camera}.exr", "exr", "float32", "(H, W, 1) channel Z", "metres", "all",
+       "the range of depth_maps/raw_data as an uncompressed OpenEXR; definition in attribute 'jaxfish:depth'", "jaxfish"),
     _e("depth_z", "depth_maps/z_depth/{sample}_{camera}.npy", "npy", "float32", "(H, W)", "metres", "all",
        "planar z-depth along the camera's optical axis at t (range x ray_z); sky = 1000", "jaxfish"),
     _e("depth_color", "depth_maps/colormap/{sample}_{camera}.png", "png", "uint8", "(H, W, 3)", "-", "all",

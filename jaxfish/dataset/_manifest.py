@@ -74,6 +74,7 @@ def dataset_manifest(reader, out_dir: str | os.PathLike, options: BuildOptions |
                                "(quaternion, translation) = pose camera -> vehicle",
             },
             "depth": {"raw_data": "Euclidean range along each pixel's ray, metres, float32 (not planar z-depth)",
+                      "exr": "depth_maps/exr: the raw_data range as a one-channel (Z) float32 OpenEXR",
                       "z_depth": "planar depth along the camera's optical axis = range x ray_z, metres, float32",
                       "sky_m": 1000.0, "no_ray": 0.0, "colormap_range_m": list(DEPTH_COLOR_RANGE_M)},
             "optical_flow": {"direction": "forward: from t-1 to t", "grid": "defined on the t-1 pixel grid",

@@ -101,6 +101,7 @@ from ._flow import write_kitti_flow as write_kitti_flow
 from ._images import read_image as read_image
 from ._images import read_image_metadata as read_image_metadata
 from ._images import write_image as write_image
+from ._labels import DEPTH_ATTRIBUTE as DEPTH_ATTRIBUTE
 from ._labels import DEPTH_COLOR_RANGE_M as DEPTH_COLOR_RANGE_M
 from ._labels import PALETTE_ATTRIBUTE as PALETTE_ATTRIBUTE
 from ._labels import boxes_2d_rows as boxes_2d_rows
@@ -110,6 +111,7 @@ from ._labels import capture_rig_ground_truth as capture_rig_ground_truth
 from ._labels import depth_to_color as depth_to_color
 from ._labels import read_boxes_2d_csv as read_boxes_2d_csv
 from ._labels import read_boxes_3d_pickle as read_boxes_3d_pickle
+from ._labels import read_depth_exr as read_depth_exr
 from ._labels import read_displacements as read_displacements
 from ._labels import read_label_png as read_label_png
 from ._labels import read_palette as read_palette
@@ -119,6 +121,7 @@ from ._labels import write_boxes_3d_ext_json as write_boxes_3d_ext_json
 from ._labels import write_boxes_3d_pickle as write_boxes_3d_pickle
 from ._labels import write_camera_ground_truth as write_camera_ground_truth
 from ._labels import write_color_png as write_color_png
+from ._labels import write_depth_exr as write_depth_exr
 from ._labels import write_depth_npy as write_depth_npy
 from ._labels import write_displacements as write_displacements
 from ._labels import write_label_png as write_label_png

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -70,12 +70,16 @@ def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None 
 
 
 def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mapping[str, Any] | None = None,
-                png_level: int = PNG_LEVEL) -> Path:
+                png_level: int = PNG_LEVEL, channel_names: Sequence[str] | None = None,
+                exr_compression: str = "zip") -> Path:
     """Write ``(H, W)`` or ``(H, W, C)`` pixels, keeping the dtype (uint8/uint16 PNG, float16/float32
     EXR). ``metadata``: ``{attribute name: JSON-able value}`` stored as JSON text attributes (read
     back with `read_image_metadata`). ``png_level``: zlib level 0-9 of a PNG (default `PNG_LEVEL`;
     every PNG uses the `PNG_FILTER` row filter); the same pixels and level always give the same
-    bytes. Atomic: on any error nothing is left at ``path``."""
+    bytes. ``channel_names`` (one per channel, e.g. ``("Z",)`` for an EXR depth map) and
+    ``exr_compression`` (OpenEXR's ``"zip"``, ``"none"``, ``"piz"``, ...) apply to EXR files. No
+    timestamp is stored: the same arguments always give the same bytes. Atomic: on any error
+    nothing is left at ``path``."""
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in _WRITABLE:
@@ -97,17 +101,22 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
         raise ImageError(f"{path}: expected (H, W) or (H, W, C) pixels, got shape {np.asarray(pixels).shape}")
     a = np.ascontiguousarray(a)
     h, w, c = a.shape
+    if channel_names is not None and len(channel_names) != c:
+        raise ImageError(f"{path}: {len(channel_names)} channel names for {c} channels")
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
             raise ImageError(f"{path}: cannot create writer ({oiio.geterror()})")
         spec = oiio.ImageSpec(w, h, c, _DTYPES[a.dtype])
+        if channel_names is not None:
+            spec.channelnames = tuple(str(n) for n in channel_names)
         if ext == ".exr":
-            spec.attribute("compression", "zip")
+            spec.attribute("compression", exr_compression)
         elif ext == ".png":
             spec.attribute("png:compressionLevel", png_level)
             spec.attribute("png:filter", PNG_FILTER)
         spec.attribute("oiio:UnassociatedAlpha", 1)  # the pixels are written as given
+        spec.attribute("DateTime", "")  # no timestamp (OpenEXR's capDate): the same pixels give the same bytes
         for name, value in (metadata or {}).items():
             spec.attribute(name, json.dumps(value))
         if not out.open(str(tmp), spec):

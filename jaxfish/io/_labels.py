@@ -179,6 +179,34 @@ def write_depth_npy(path: str | os.PathLike, depth_m: np.ndarray) -> Path:
     return path
 
 
+#: Metadata key of the definition JSON in the depth EXRs written by `write_depth_exr`.
+DEPTH_ATTRIBUTE = "jaxfish:depth"
+
+
+def write_depth_exr(path: str | os.PathLike, depth_m: np.ndarray, definition: Mapping[str, Any] | None = None) -> Path:
+    """Depth map as a one-channel float32 OpenEXR (channel ``Z``, uncompressed: 3x faster to write
+    than zip for 20 % more bytes), with ``definition`` (JSON-able: what the values are) stored as
+    the text attribute `DEPTH_ATTRIBUTE`; atomic. Read it back with `read_depth_exr`."""
+    d = np.asarray(depth_m, np.float32)
+    if d.ndim != 2:
+        raise ImageError(f"{path}: depth must be (H, W), got {d.shape}")
+    return write_image(path, d, channel_names=("Z",), exr_compression="none",
+                       metadata=None if definition is None else {DEPTH_ATTRIBUTE: dict(definition)})
+
+
+def read_depth_exr(path: str | os.PathLike) -> np.ndarray:
+    """A depth EXR written by `write_depth_exr` as ``(H, W)`` float32 metres."""
+    a = read_image(path)
+    if a.shape[-1] != 1 or a.dtype != np.float32:
+        raise ImageError(f"{path}: expected a one-channel float32 depth EXR, got {a.dtype} {a.shape}")
+    return a[..., 0]
+
+
+#: What the dataset's depth EXRs hold (their `DEPTH_ATTRIBUTE` metadata).
+RANGE_DEPTH_DEFINITION = {"quantity": "Euclidean range along the pixel's ray (not planar z-depth)", "unit": "m",
+                          "sky_m": 1000.0, "no_ray": 0.0, "instant": "t"}
+
+
 def write_npz(path: str | os.PathLike, **arrays: np.ndarray) -> Path:
     """``np.savez``-compatible ``.npz`` with fixed zip timestamps (1980-01-01), so the same arrays
     always give the same bytes (``np.savez`` stamps the current time); atomic, no pickle."""
@@ -413,7 +441,8 @@ def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str,
     `capture_bev_ground_truth` result with camera ``"BEV"``) in SynWoodScape's layout under
     ``root`` with file stem ``{sample}_{camera}``: ``rgb_images``, ``previous_images``
     (``{stem}_prev.png``), ``depth_maps/raw_data`` (range along the ray, float32 ``.npy``, sky
-    1000), ``depth_maps/z_depth`` (``.npy``) and ``depth_maps/colormap`` (``.png``),
+    1000), ``depth_maps/exr`` (the same range as a one-channel float32 EXR, `write_depth_exr`),
+    ``depth_maps/z_depth`` (``.npy``) and ``depth_maps/colormap`` (``.png``),
     ``semantic_annotations``, ``instance_annotations`` (actor ids) and ``motion_annotations``
     (0/255) as ``gtLabels`` + ``rgbLabels``, ``optical_flow/{raw_data .flo, kitti .png,
     color_coded .png}`` (forward, t-1 -> t on the t-1 grid), ``dvs_signals/{raw_data .npy (CARLA
@@ -437,6 +466,7 @@ def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str,
     add(write_image(root / "previous_images" / f"{stem}_prev.png", np.asarray(t.images_prev.rgb), png_level=png_level))
     rng = np.asarray(t.images.range_m, np.float32)
     add(write_depth_npy(root / "depth_maps" / "raw_data" / f"{stem}.npy", rng))
+    add(write_depth_exr(root / "depth_maps" / "exr" / f"{stem}.exr", rng, RANGE_DEPTH_DEFINITION))
     add(write_depth_npy(root / "depth_maps" / "z_depth" / f"{stem}.npy",
                         np.asarray(jit["z_depth"](result["camera"], t.images.range_m))))
     add(write_image(root / "depth_maps" / "colormap" / f"{stem}.png", depth_to_color(rng), png_level=png_level))

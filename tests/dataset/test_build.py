@@ -16,6 +16,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import OpenImageIO as oiio
 import pytest
 
 from jaxfish.dataset import LAYOUT, build_dataset, is_complete, sample_files
@@ -43,6 +44,13 @@ def _load(path: Path, fmt: str):
         return a[..., ::-1] if a.ndim == 3 else a  # cv2 is BGR
     if fmt == "npy":
         return np.load(path, allow_pickle=False)
+    if fmt == "exr":  # OpenImageIO itself (the opencv wheel has no EXR support)
+        inp = oiio.ImageInput.open(str(path))
+        assert inp is not None, path
+        spec = inp.spec()
+        a = np.asarray(inp.read_image(0, 0, 0, spec.nchannels, spec.format))
+        inp.close()
+        return a.reshape(spec.height, spec.width, spec.nchannels), tuple(spec.channelnames)
     if fmt == "npz":
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
@@ -95,6 +103,11 @@ def test_every_file_is_there_and_reads_back_from_the_layout_alone(reference_buil
                 if entry["key"] == "boxes_3d":
                     assert data and all(isinstance(k, int) and v.shape == (8, 3) and v.dtype == np.float64
                                         for k, v in data.items())
+                if entry["key"] == "depth_exr":
+                    pixels, channels = data
+                    assert channels == ("Z",) and pixels.dtype == np.float32
+                    raw = np.load(out / f"depth_maps/raw_data/{sample}_{cam}.npy")
+                    np.testing.assert_array_equal(pixels[..., 0], raw)
                 if entry["key"] == "depth":
                     assert data.max() <= 1000.0 and data.min() >= 0 and (cam == "BEV" or np.any(data == 1000.0))
                 if entry["key"] == "motion":

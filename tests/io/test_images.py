@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxfish import ImageError
-from jaxfish.io import read_image, write_image
+from jaxfish.io import read_image, read_image_metadata, write_image
 
 RNG = np.random.default_rng(0)
 
@@ -87,3 +87,29 @@ def test_write_replaces_atomically(tmp_path):
     write_image(p, np.full((3, 3), 9, np.uint8))
     assert read_image(p).max() == 9
     assert sorted(x.name for x in tmp_path.iterdir()) == ["x.png"]
+
+
+@pytest.mark.parametrize("ext", [".png", ".exr"])
+def test_same_pixels_give_the_same_bytes_at_another_time(tmp_path, ext):
+    import time
+
+    a = (np.arange(12 * 10 * 3).reshape(12, 10, 3) % 251).astype(np.uint8 if ext == ".png" else np.float32)
+    write_image(tmp_path / f"a{ext}", a)
+    time.sleep(1.05)  # another second: OpenEXR would stamp it in its capDate header
+    write_image(tmp_path / f"b{ext}", a)
+    assert (tmp_path / f"a{ext}").read_bytes() == (tmp_path / f"b{ext}").read_bytes()
+
+
+def test_png_level_and_depth_exr(tmp_path):
+    from jaxfish.io import DEPTH_ATTRIBUTE, read_depth_exr, write_depth_exr
+
+    a = (np.arange(64 * 48 * 3).reshape(64, 48, 3) % 7).astype(np.uint8)
+    small, fast = write_image(tmp_path / "s.png", a, png_level=9), write_image(tmp_path / "f.png", a, png_level=1)
+    assert np.array_equal(read_image(small), a) and np.array_equal(read_image(fast), a)
+    with pytest.raises(ImageError, match="png_level"):
+        write_image(tmp_path / "bad.png", a, png_level=10)
+    d = np.linspace(0.5, 1000.0, 48 * 64, dtype=np.float32).reshape(48, 64)
+    p = write_depth_exr(tmp_path / "d.exr", d, {"unit": "m"})
+    assert np.array_equal(read_depth_exr(p), d) and read_image_metadata(p, DEPTH_ATTRIBUTE) == {"unit": "m"}
+    with pytest.raises(ImageError, match="channel names"):
+        write_image(tmp_path / "c.exr", d, channel_names=("Z", "W"))
