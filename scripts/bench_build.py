@@ -16,6 +16,7 @@ jobs, load ~4): see docs/dataset.md "Speed" and the report printed by this scrip
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import shutil
 import statistics
@@ -94,11 +95,13 @@ def main() -> None:
         first = build_dataset(capture, scratch / "first", frames=[0])
         assert first.ok, first.summary()
         compile_s = time.perf_counter() - t
-        times = []
+        times, cpus = [], []
         for i in range(args.repeat):
-            t = time.perf_counter()
+            t, c0 = time.perf_counter(), os.times()
             rep = build_dataset(capture, scratch / f"run{i}", frames=[0])
             times.append(time.perf_counter() - t)
+            c1 = os.times()
+            cpus.append(c1.user + c1.system - c0.user - c0.system)
             assert rep.ok, rep.summary()
             shutil.rmtree(scratch / f"run{i}")
         med = statistics.median(times)
@@ -107,6 +110,9 @@ def main() -> None:
         print(f"serial: first sample (compile included) {compile_s:.1f} s; after compile {med:.2f} s per sample "
               f"= {1 / med:.2f} samples/s (runs: {', '.join(f'{x:.2f}' for x in times)} s); "
               f"{files} files, {size_mb:.0f} MB per sample")
+        print(f"CPU time per sample (all threads): {statistics.median(cpus):.2f} s = "
+              f"{statistics.median(cpus) / med:.2f} cores busy on average; a {os.cpu_count()}-core bound of "
+              f"{os.cpu_count() / statistics.median(cpus):.2f} samples/s at this work per sample")
         print(f"peak memory (this process): {_peak_mb():.0f} MB")
         if not args.no_dask:
             for n in (1, 2):

@@ -53,6 +53,13 @@ class BuildOptions:
     png_level: int = 1
     write_threads: int = 2
 
+    def __post_init__(self) -> None:
+        level = self.png_level
+        if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= 9:
+            raise DatasetError(f"BuildOptions: png_level must be an integer from 0 to 9, got {level!r}")
+        if self.write_threads < 0:
+            raise DatasetError(f"BuildOptions: write_threads must be >= 0, got {self.write_threads}")
+
     def to_dict(self) -> dict[str, Any]:
         """The options that shape the output (``write_threads`` does not)."""
         return {"backward_flow": self.backward_flow, "bev": self.bev, "motion_threshold_m": self.motion_threshold_m,

@@ -45,9 +45,11 @@ def rgb_to_bgra(rgb: np.ndarray) -> np.ndarray:
 
 def decode_depth(bgra: np.ndarray) -> np.ndarray:
     """CARLA 24-bit encoded depth (BGRA uint8) -> planar z-depth in metres, float32."""
-    a = _check_bgra(bgra, "decode_depth").astype(np.float64)
-    b, g, r = a[..., 0], a[..., 1], a[..., 2]
-    return (CARLA_MAX_DEPTH_M * (r + 256.0 * g + 65536.0 * b) / _DEPTH_SCALE).astype(np.float32)
+    a = _check_bgra(bgra, "decode_depth")
+    # The 24-bit code in integers (exact), then one float64 scaling: the same values as scaling
+    # every channel in float64, without converting the whole BGRA array to float64.
+    code = a[..., 2].astype(np.int32) + (a[..., 1].astype(np.int32) << 8) + (a[..., 0].astype(np.int32) << 16)
+    return (CARLA_MAX_DEPTH_M * code.astype(np.float64) / _DEPTH_SCALE).astype(np.float32)
 
 
 def encode_depth(depth_m: np.ndarray) -> np.ndarray:

@@ -55,3 +55,16 @@ def test_depth_colors_near_bright_far_dark_sky_black():
     assert c.dtype == np.int64 and c.shape == (1, 5, 3)
     lum = c[0].sum(-1)
     assert lum[0] > lum[1] > lum[2] > 0 and lum[3] == 0 and lum[4] == 0
+
+
+def test_build_options_reject_bad_values_and_record_the_png_level():
+    import pytest
+
+    from jaxfish.dataset import BuildOptions, DatasetError
+
+    assert BuildOptions(png_level=6).to_dict()["png_level"] == 6
+    for bad in (10, -1, 1.5, True):
+        with pytest.raises(DatasetError, match="png_level"):
+            BuildOptions(png_level=bad)
+    with pytest.raises(DatasetError, match="write_threads"):
+        BuildOptions(write_threads=-1)
