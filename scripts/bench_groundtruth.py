@@ -27,6 +27,7 @@ import numpy as np
 
 import jaxfish as jf
 from jaxfish import groundtruth as gt
+from jaxfish.dataset import tune_allocator
 from jaxfish.reprojection import CubeRig, build_lut, cube_face_size
 from jaxfish.scene import CaptureConfig, generate_street, render_cube_faces
 from jaxfish.transforms import Pose
@@ -74,7 +75,11 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="quarter-size fisheyes (smoke run)")
     ap.add_argument("--face-size", type=int, default=CaptureConfig().face_size,
                     help="cube face size in pixels (0: cube_face_size of each camera)")
+    ap.add_argument("--untuned-allocator", action="store_true",
+                    help="leave glibc's allocator as it is (the dataset builder tunes it: tune_allocator)")
     args = ap.parse_args()
+    if not args.untuned_allocator:
+        print(f"tune_allocator: {tune_allocator()}")
     w, h = (320, 242) if args.quick else (1280, 966)
     rig = {k: v.astype(F32) for k, v in jf.default_rig(width=w, height=h, dtype=F32).items()}
     frame = generate_street(0, frame=3, rig=rig)
@@ -167,7 +172,7 @@ def main() -> None:
     rig_ms = {}
     if len({c["size"] for c in cams.values()}) == 1:
         cs = list(cams.values())
-        stack = lambda inst, k: np.stack([np.asarray(getattr(c[inst], k)) for c in cs])  # noqa: E731
+        stack = lambda inst, k: jnp.stack([getattr(c[inst], k) for c in cs])  # noqa: E731  (on the device, like the per-camera path)
         fp, fc = (Faces(*(stack(inst, k) for k in ("rgb", "depth_m", "semantic"))) for inst in ("prev", "curr"))
         c2v = Pose(np.stack([np.asarray(c["calib"].camera_to_vehicle.rotation_matrix, np.float32) for c in cs]),
                    np.stack([np.asarray(c["calib"].camera_to_vehicle.translation, np.float32) for c in cs]))

@@ -150,13 +150,21 @@ def _finish(camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehi
     reach = max(margin_m, fallback_m)
     k_host, n_host, m_host, cands, points = _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes,
                                                          carla_version, reach)
-    if max_candidates is None:  # a power of two: frames and cameras of similar content share one compilation
-        max_candidates = 1 << max(int(k_host) - 1, 0).bit_length()
-    capacity = tile_capacity(int(n_host))
-    capacity_many = tile_capacity(int(m_host))
-    return _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, points, carla_version,
-                     float(motion_threshold_m), bool(backward_flow), float(margin_m), float(fallback_m),
-                     int(max_candidates), capacity, capacity_many, int(surface_samples))
+    statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates,
+                           surface_samples, k_host, n_host, m_host)
+    return _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, points, *statics)
+
+
+def rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples,
+                 k, busy, many) -> tuple:
+    """The static arguments of the second stage (labels, flow, boxes), from the options and the
+    host values of the planning stage: most candidates per tile ``k`` (rounded up to a power of two
+    unless ``max_candidates`` is given, so that frames and cameras of similar content share one
+    compilation), and the tile capacities for the ``busy`` and ``many``-candidate tiles."""
+    if max_candidates is None:
+        max_candidates = 1 << max(int(k) - 1, 0).bit_length()
+    return (carla_version, float(motion_threshold_m), bool(backward_flow), float(margin_m), float(fallback_m),
+            int(max_candidates), tile_capacity(int(busy)), tile_capacity(int(many)), int(surface_samples))
 
 
 def view_ground_truth(

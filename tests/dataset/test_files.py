@@ -68,3 +68,11 @@ def test_build_options_reject_bad_values_and_record_the_png_level():
             BuildOptions(png_level=bad)
     with pytest.raises(DatasetError, match="write_threads"):
         BuildOptions(write_threads=-1)
+
+
+def test_tune_allocator_is_idempotent_and_optional():
+    from jaxfish.dataset import BuildOptions, tune_allocator
+
+    first = tune_allocator()
+    assert isinstance(first, bool) and tune_allocator() is first  # glibc here: True; elsewhere a no-op
+    assert "tune_allocator" not in BuildOptions(tune_allocator=False).to_dict()  # it never changes bytes
