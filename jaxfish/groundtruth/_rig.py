@@ -1,14 +1,15 @@
 """All ground truth of a camera rig, batched: the cameras of one sample (leading axis ``C``) or of
-several samples (leading axes ``(N, C)``) in one compiled program per stage, with one host
-round trip for the static sizes of the instance segmentation (the largest over the batch).
+several samples (leading axes ``(N, C)``) in one call.
 
-The batch is mapped either by `jax.vmap` (one program per stage for the whole batch) or by a loop
-dispatching one compiled program per camera and sample asynchronously (``batch="loop"``). Both
-give the same values (tested). Which is faster depends on the backend: on a 2-core CPU the loop
-took 0.82-0.88 s for the four 1280 x 966 cameras of a sample, the vmapped program 2.2 s and the
-same four cameras unrolled in one program 1.5 s (XLA:CPU lowers batched gathers slowly and
-schedules one large program worse than four small ones), so ``batch="auto"`` loops on CPU and
-vmaps on accelerators, where one wide program is what keeps the device busy.
+The batch is mapped either by `jax.vmap` (``batch="vmap"``: one program per stage for the whole
+batch, one host round trip for the static sizes of the instance segmentation, the largest over
+the batch) or by a loop dispatching each camera's compiled programs asynchronously
+(``batch="loop"``: static sizes per camera). Both give the same values (tested). Which is faster
+depends on the backend: on a 2-core CPU the loop took 0.8-0.9 s for the four 1280 x 966 cameras of
+a sample, the vmapped program 1.9-2.4 s and the four cameras unrolled in one program 1.5 s (XLA:CPU
+lowers batched gathers slowly and schedules one large program worse than four small ones), so
+``batch="auto"`` loops on CPU and vmaps on accelerators, where one wide program keeps the device
+busy.
 """
 
 from __future__ import annotations
@@ -55,18 +56,17 @@ def map_rig(fn, per_camera, per_sample, per_item, n: int, c: int, mode: str):
 
     ``mode="vmap"`` (call it inside `jax.jit`): nested `jax.vmap`, a pytree with leading axes
     ``(n, c)``; ``per_camera``, ``per_sample`` and ``per_item`` are pytrees whose leaves carry the
-    camera axis, the sample axis or both. ``mode="loop"``: one call of ``fn`` (a compiled
-    function) per camera and sample, dispatched asynchronously; returns the nested list
+    camera axis, the sample axis or both. ``mode="loop"``: one call of ``fn`` (compiled
+    functions) per camera and sample, dispatched asynchronously; returns the nested list
     ``[i][j]`` (unstacked: stacking copies every output); ``per_camera`` is a list of the cameras'
-    pytrees and ``per_item`` may be such a nested list."""
+    pytrees."""
     if mode == "vmap":
         over_cameras = jax.vmap(fn, in_axes=(0, None, 0))
         return jax.vmap(over_cameras, in_axes=(None, 0, 0))(per_camera, per_sample, per_item)
     rows = []
     for i in range(n):
-        smp = _at(per_sample, i)
-        item = per_item[i] if isinstance(per_item, list) else _at(per_item, i)
-        rows.append([fn(per_camera[j], smp, item[j] if isinstance(item, list) else _at(item, j)) for j in range(c)])
+        smp, item = _at(per_sample, i), _at(per_item, i)
+        rows.append([fn(per_camera[j], smp, _at(item, j)) for j in range(c)])
     return rows
 
 
@@ -140,9 +140,11 @@ def _per_camera(x, c: int, what: str, mode: str):
         if len(x) != c:
             raise ValueError(f"rig_ground_truth: {len(x)} entries in '{what}' for {c} cameras")
         return list(x) if mode == "loop" else _stack(list(x))
-    if mode == "loop":
-        return [_at(x, j) for j in range(c)]
-    return x
+    leaves = jax.tree_util.tree_leaves(x)
+    if not leaves or any(jnp.ndim(leaf) == 0 or jnp.shape(leaf)[0] != c for leaf in leaves):
+        raise ValueError(f"rig_ground_truth: '{what}' must be stacked over the {c} cameras (leading axis) or a list, "
+                         f"got leading sizes {sorted({jnp.shape(leaf)[:1] for leaf in leaves})}")
+    return [_at(x, j) for j in range(c)] if mode == "loop" else x
 
 
 def _array(x):
@@ -217,10 +219,6 @@ def rig_ground_truth(
     luts, cameras = _per_camera(luts, c, "luts", mode), _per_camera(cameras, c, "cameras", mode)
     if rays is not None:
         rays = _per_camera([tuple(r) for r in rays] if isinstance(rays, list) else tuple(rays), c, "rays", mode)
-    n_luts = len(luts) if isinstance(luts, list) else (luts.valid.shape[0] if luts.valid.ndim == 4 else -1)
-    if n_luts != c:
-        raise ValueError(f"rig_ground_truth: {c} cameras in the faces but {n_luts} LUTs (stack one LUT per camera "
-                         "with stack_luts, or pass a list)")
     for leaf in jax.tree_util.tree_leaves(samples):
         if leaf.shape[:1] != (n,):
             raise ValueError(f"rig_ground_truth: {n} samples in the faces, but a box / pose array of shape {leaf.shape}")
@@ -233,9 +231,6 @@ def rig_ground_truth(
         rays = [(jnp.asarray(r[0], jnp.float32), jnp.asarray(r[1], bool)) for r in rays]
     else:
         rays = (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
-    n_rays = len(rays) if isinstance(rays, list) else rays[0].shape[0]
-    if n_rays != c:
-        raise ValueError(f"rig_ground_truth: rays of {n_rays} cameras for {c} cameras in the faces")
     reach = float(max(margin_m, fallback_m))
     per_sample, per_item = samples, (fp, fc)
     if mode == "loop":

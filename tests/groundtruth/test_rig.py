@@ -129,6 +129,8 @@ def test_errors_name_the_argument(batch):
     fp, fc, bp, bc, vp, vc = _sample(batch, 0)
     with pytest.raises(ValueError, match="entries in .luts. for 2 cameras"):
         gt.rig_ground_truth(batch.luts[:1], batch.cams, batch.c2v, fp, fc, bp, bc, vp, vc, batch="loop")
+    with pytest.raises(ValueError, match="'luts' must be stacked over the 2 cameras"):
+        gt.rig_ground_truth(stack_luts(batch.luts[:1]), batch.cams, batch.c2v, fp, fc, bp, bc, vp, vc, batch="loop")
     with pytest.raises(ValueError, match="batch must be"):
         gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, fp, fc, bp, bc, vp, vc, batch="threads")
     with pytest.raises(ValueError, match="faces_prev"):
