@@ -317,7 +317,8 @@ def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None
                          backward_flow: bool = False, carla_version: str | None = None,
                          **options: Any) -> dict[str, Any]:
     """Everything `jaxfish.groundtruth.fisheye_ground_truth` computes for one fisheye camera of a
-    capture frame (`CaptureReader`), plus its events mapped to the fisheye.
+    capture frame (`CaptureReader`), plus its events mapped to the fisheye
+    (`capture_rig_ground_truth` of this one camera).
 
     ``lut`` (cube -> fisheye `Lut` of this camera), ``rays`` (`pixel_rays`) and ``event_map``
     (`jaxfish.groundtruth.event_map_from_lut` of the LUT) are per-calibration constants: pass them
@@ -326,29 +327,8 @@ def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None
     CARLA-dtype fisheye events (t in ns, time order), "camera": the fisheye model, "actors": the
     actor records}``.
     """
-    import jax.numpy as jnp
-
-    from .. import groundtruth as gt
-    from ..reprojection import CubeRig, build_lut
-    from ._capture import CaptureError
-
-    rig = reader.rig()
-    if camera not in rig:
-        raise CaptureError(f"{reader.root}/calibration: camera {camera!r} missing (have {sorted(rig)})")
-    calib = rig[camera].astype(jnp.float32)
-    cam = calib.camera.astype(jnp.float32)
-    faces = tuple(reader.faces)
-    if lut is None:
-        lut = build_lut(CubeRig(int(reader.meta.get("face_size", 0)) or reader.face(frame, camera, faces[0]).rgb.shape[0],
-                                faces=faces, dtype=jnp.float32), cam)
-    actors, boxes_prev, boxes, v2w_p, v2w = _frame_motion(reader, frame)
-    version = _carla_version(reader, carla_version)
-    truth = gt.fisheye_ground_truth(lut, cam, calib.camera_to_vehicle, reader.faces_stack(frame, camera, "prev", actor_ids=False),
-                                    reader.faces_stack(frame, camera, "curr", actor_ids=False), boxes_prev, boxes, v2w_p, v2w,
-                                    backward_flow=backward_flow, carla_version=version, rays=rays, **options)
-    events = camera_events(reader, frame, camera, gt.event_map_from_lut(lut) if event_map is None else event_map)
-    return {"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
-            "vehicle_to_world": v2w, "events": events, "camera": cam, "actors": actors}
+    return capture_rig_ground_truth(reader, frame, [camera], constants={camera: (lut, rays, event_map)},
+                                    backward_flow=backward_flow, carla_version=carla_version, **options)[0]
 
 
 def camera_events(reader, frame: int, camera: str, event_map) -> np.ndarray:
@@ -370,11 +350,12 @@ def capture_rig_ground_truth(reader, frame: int, cameras: Sequence[str] | None =
                              batch: str = "auto", **options: Any) -> list[dict[str, Any]]:
     """`capture_ground_truth` for several fisheye cameras of a capture frame at once (default: all
     of them, in `CaptureReader.cameras` order), through `jaxfish.groundtruth.rig_ground_truth`:
-    the faces of every camera are decoded in threads, the instance segmentation's static sizes
-    are found in one host round trip, and ``batch`` chooses how the cameras are mapped.
+    the faces of every camera are decoded in one pool of threads, and ``batch`` chooses how the
+    cameras are mapped (``"auto"``: a loop of per-camera programs on CPU, `jax.vmap` elsewhere).
 
-    ``constants`` ``{camera: (lut, rays, event_map)}``: the per-calibration constants (built here
-    when omitted). Returns one `capture_ground_truth` result dict per camera, in order."""
+    ``constants`` ``{camera: (lut, rays, event_map)}``: the per-calibration constants (those
+    missing or None are built here). Returns one `capture_ground_truth` result dict per camera, in
+    order."""
     import concurrent.futures
 
     import jax.numpy as jnp
@@ -386,19 +367,14 @@ def capture_rig_ground_truth(reader, frame: int, cameras: Sequence[str] | None =
 
     rig = reader.rig()
     names = list(reader.cameras if cameras is None else cameras)
+    if not names:
+        raise CaptureError(f"{reader.root / 'capture.json'}: no camera to compute (field 'cameras' is empty)")
     missing = [c for c in names if c not in rig]
-    if missing or not names:
-        raise CaptureError(f"{reader.root}/calibration: camera(s) {missing or names} missing (have {sorted(rig)})")
+    if missing:
+        raise CaptureError(f"{reader.root}/calibration: camera(s) {missing} missing (have {sorted(rig)})")
     calibs = [rig[c].astype(jnp.float32) for c in names]
     cams = [cal.camera.astype(jnp.float32) for cal in calibs]
-    if constants is None:
-        from ..reprojection import CubeRig, build_lut
-
-        size = int(reader.meta.get("face_size", 0)) or reader.face(frame, names[0], reader.faces[0]).rgb.shape[0]
-        constants = {}
-        for c, cam in zip(names, cams, strict=True):
-            lut = build_lut(CubeRig(size, faces=tuple(reader.faces), dtype=jnp.float32), cam)
-            constants[c] = (lut, gt.pixel_rays(cam), gt.event_map_from_lut(lut))
+    constants = _fill_constants(reader, frame, names, cams, constants or {})
     actors, boxes_prev, boxes, v2w_p, v2w = _frame_motion(reader, frame)
     version = _carla_version(reader, carla_version)
     jobs = [(c, inst, f) for inst in ("prev", "curr") for c in names for f in reader.faces]
@@ -418,6 +394,23 @@ def capture_rig_ground_truth(reader, frame: int, cameras: Sequence[str] | None =
     return [{"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
              "vehicle_to_world": v2w, "events": camera_events(reader, frame, c, constants[c][2]), "camera": cam,
              "actors": actors} for c, cam, truth in zip(names, cams, truths, strict=True)]
+
+
+def _fill_constants(reader, frame: int, names: list[str], cams: list, given: Mapping[str, Any]) -> dict[str, tuple]:
+    """``{camera: (lut, rays, event_map)}`` with every entry missing from ``given`` (or None) built."""
+    import jax.numpy as jnp
+
+    from .. import groundtruth as gt
+    from ..reprojection import CubeRig, build_lut
+
+    out = {}
+    for c, cam in zip(names, cams, strict=True):
+        lut, rays, emap = given.get(c) or (None, None, None)
+        if lut is None:
+            size = int(reader.meta.get("face_size", 0)) or reader.face(frame, c, reader.faces[0], actor_ids=False).rgb.shape[0]
+            lut = build_lut(CubeRig(size, faces=tuple(reader.faces), dtype=jnp.float32), cam)
+        out[c] = (lut, gt.pixel_rays(cam) if rays is None else rays, gt.event_map_from_lut(lut) if emap is None else emap)
+    return out
 
 
 def _jitted():
