@@ -95,7 +95,13 @@ def map_events(
 ) -> FisheyeEvents:
     """Map face events (face index in the `CubeRig` order, face pixel ``x`` column / ``y`` row,
     time ``t`` in any integer unit, polarity) to fisheye events under the module's rule. Output
-    size ``E * max_fanout`` (static); sorted by time, valid events first. Pure JAX."""
+    size ``E * max_fanout`` (static); sorted by time, valid events first. Pure JAX.
+
+    Without ``jax_enable_x64``, JAX holds integers as int32: host times that do not fit (CARLA's
+    absolute nanoseconds, ~1e10 after 10 s of simulation) raise `ValueError` instead of wrapping
+    silently; pass times relative to the frame (``t - t0``, 0.1 s = 1e8 ns fits) and add ``t0``
+    back, or enable x64. (`jaxfish.io.map_face_events`, the builder's NumPy twin, keeps int64.)"""
+    _check_time_range(t)
     fi = jnp.asarray(face).astype(jnp.int32)
     xi = jnp.asarray(x).astype(jnp.int32)
     yi = jnp.asarray(y).astype(jnp.int32)
@@ -122,6 +128,21 @@ def map_events(
         t=jnp.where(ok, tt[src_event], 0), polarity=ok & jnp.asarray(polarity, bool)[src_event],
         face=jnp.where(ok, fi[src_event], -1), valid=ok, count=jnp.sum(ok.astype(jnp.int32)),
     )
+
+
+def _check_time_range(t) -> None:
+    """Raise when host times would wrap on conversion to JAX's default integer type (int32 unless
+    ``jax_enable_x64``); traced or device arrays already hold their values."""
+    if isinstance(t, jax.Array):
+        return
+    a = np.asarray(t)
+    if a.size == 0 or not np.issubdtype(a.dtype, np.integer):
+        return
+    held = np.dtype(jax.dtypes.canonicalize_dtype(a.dtype))
+    info = np.iinfo(held)
+    if held.itemsize < a.dtype.itemsize and (a.max() > info.max or a.min() < info.min):
+        raise ValueError(f"map_events: times span [{a.min()}, {a.max()}], beyond {held} (jax_enable_x64 is off): "
+                         "pass times relative to the frame start (t - t0) and add t0 back, or enable jax_enable_x64")
 
 
 def compact_events(events: FisheyeEvents) -> dict[str, np.ndarray]:

@@ -89,3 +89,17 @@ def test_unsorted_input_and_ties_follow_the_stable_rule(sample, event_map):
     got = list(zip(out["t"].tolist(), (out["y"] * event_map.width + out["x"]).tolist(), out["face"].tolist(),
                    out["polarity"].tolist(), strict=True))
     assert got == ref
+
+
+def test_host_times_beyond_int32_raise_without_x64_instead_of_wrapping(event_map):
+    rng = np.random.default_rng(3)
+    face, x, y, t, pol = _random_events(rng, 50, event_map.num_faces, event_map.face_size, t0=10**10)
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match="jax_enable_x64"):
+            gt.map_events(event_map, face, x, y, t, pol)
+        relative = gt.map_events(event_map, face, x, y, t - t.min(), pol)  # the documented way
+    full = gt.map_events(event_map, face, x, y, t, pol)  # x64 on (the test suite's setting)
+    n = int(full.count)
+    assert n == int(relative.count) > 0
+    np.testing.assert_array_equal(np.asarray(relative.t)[:n] + t.min(), np.asarray(full.t)[:n])
+    np.testing.assert_array_equal(np.asarray(relative.x)[:n], np.asarray(full.x)[:n])
