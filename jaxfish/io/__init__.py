@@ -109,6 +109,7 @@ from ._labels import camera_events as camera_events
 from ._labels import capture_ground_truth as capture_ground_truth
 from ._labels import capture_rig_ground_truth as capture_rig_ground_truth
 from ._labels import depth_to_color as depth_to_color
+from ._labels import map_face_events as map_face_events
 from ._labels import read_boxes_2d_csv as read_boxes_2d_csv
 from ._labels import read_boxes_3d_pickle as read_boxes_3d_pickle
 from ._labels import read_depth_exr as read_depth_exr
