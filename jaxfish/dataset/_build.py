@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import JaxfishError
-from ._layout import BEV_CAMERA, FISHEYE_CAMERAS, sample_id
+from ._layout import BEV_CAMERA, FISHEYE_CAMERAS, LAYOUT_VERSION, sample_id
 from ._runtime import tune_allocator
 
 #: Folder of the per-sample completion markers.
@@ -211,7 +211,7 @@ def build_sample(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fra
     """Build one sample (capture frame ``frame``) into ``out_dir`` and write its marker last.
 
     Pure in (capture, frame, options): the same inputs give the same bytes in any process.
-    Returns ``{"sample", "frame", "files": {relative path: sha256}}`` (the marker's content).
+    Returns ``{"sample", "frame", "layout_version", "files": {relative path: sha256}}`` (the marker's content).
     Raises on a missing or corrupt capture file (`jaxfish.io.CaptureError` naming the file)."""
     from ..io import (
         CaptureReader,
@@ -271,7 +271,7 @@ def build_sample(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fra
                 f.cancel()
             pool.shutdown(wait=True)
     files = {p.relative_to(out).as_posix(): _sha256(p) for p in sorted(set(written))}
-    marker = {"sample": sid, "frame": int(frame), "files": dict(sorted(files.items()))}
+    marker = {"sample": sid, "frame": int(frame), "layout_version": LAYOUT_VERSION, "files": dict(sorted(files.items()))}
     atomic_write_text(out / DONE_DIR / f"{sid}.json", json.dumps(marker, indent=1) + "\n")
     return marker
 
@@ -303,13 +303,17 @@ def _sample_task(capture_dir: str, out_dir: str, frame: int, options: BuildOptio
 
 # --------------------------------------------------------------------------------------- the build
 def is_complete(out_dir: str | os.PathLike, sample: str) -> bool:
-    """Whether ``sample``'s completion marker exists and every file it lists is present."""
+    """Whether ``sample``'s completion marker exists, was written for this `LAYOUT_VERSION` (a sample
+    built for another layout is rebuilt when a build resumes), and every file it lists is present."""
     marker = Path(out_dir) / DONE_DIR / f"{sample}.json"
     if not marker.is_file():
         return False
     try:
-        files = json.loads(marker.read_text())["files"]
-    except (json.JSONDecodeError, KeyError, TypeError):
+        doc = json.loads(marker.read_text())
+        files = doc["files"]
+        if doc.get("layout_version") != LAYOUT_VERSION:
+            return False
+    except (json.JSONDecodeError, KeyError, TypeError, AttributeError):
         return False
     return all((Path(out_dir) / rel).is_file() for rel in files)
 

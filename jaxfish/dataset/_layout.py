@@ -15,8 +15,9 @@ FISHEYE_CAMERAS = ("FV", "RV", "MVL", "MVR")
 BEV_CAMERA = "BEV"
 #: Digits of a sample id: sample ``k`` is the capture's frame ``k`` (``{k:05d}``).
 SAMPLE_DIGITS = 5
-#: Version of this layout (bumped on any change of folder, name, dtype or meaning).
-LAYOUT_VERSION = 1
+#: Version of this layout (bumped on any change of folder, name, dtype or meaning; 2: depth EXR
+#: added). Completion markers of another version do not count as complete: resuming rebuilds them.
+LAYOUT_VERSION = 2
 
 
 def sample_id(frame: int) -> str:

@@ -76,3 +76,20 @@ def test_tune_allocator_is_idempotent_and_optional():
     first = tune_allocator()
     assert isinstance(first, bool) and tune_allocator() is first  # glibc here: True; elsewhere a no-op
     assert "tune_allocator" not in BuildOptions(tune_allocator=False).to_dict()  # it never changes bytes
+
+
+def test_a_marker_of_another_layout_version_is_not_complete(tmp_path):
+    import json
+
+    from jaxfish.dataset import LAYOUT_VERSION, is_complete
+
+    (tmp_path / "rgb_images").mkdir()
+    (tmp_path / "rgb_images" / "00000_FV.png").write_bytes(b"x")
+    (tmp_path / ".done").mkdir()
+    marker = tmp_path / ".done" / "00000.json"
+    for version, complete in ((LAYOUT_VERSION, True), (LAYOUT_VERSION - 1, False), (None, False)):
+        doc = {"sample": "00000", "frame": 0, "files": {"rgb_images/00000_FV.png": "0"}}
+        if version is not None:
+            doc["layout_version"] = version
+        marker.write_text(json.dumps(doc))
+        assert is_complete(tmp_path, "00000") is complete, version
