@@ -58,9 +58,10 @@ class BuildOptions:
     tune_allocator: bool = False
 
     def __post_init__(self) -> None:
-        level = self.png_level
-        if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= 9:
-            raise DatasetError(f"BuildOptions: png_level must be an integer from 0 to 9, got {level!r}")
+        from ..io._images import is_png_level
+
+        if not is_png_level(self.png_level):
+            raise DatasetError(f"BuildOptions: png_level must be an integer from 0 to 9, got {self.png_level!r}")
         if self.write_threads < 0:
             raise DatasetError(f"BuildOptions: write_threads must be >= 0, got {self.write_threads}")
 
@@ -115,38 +116,29 @@ def _file_key(path: Path) -> str:
 
 def _camera_constants(reader, camera: str):
     """(LUT, rays, event map) of a fisheye camera: built once per calibration per worker process."""
-    import jax
     import jax.numpy as jnp
 
-    from .. import groundtruth as gt
-    from ..reprojection import CubeRig, build_lut
+    from ..io._labels import fisheye_constants
 
     key = ("fisheye", _file_key(reader.root / "calibration" / f"{camera}.json"),
            int(reader.meta.get("face_size", 0)), tuple(reader.faces))
     with _CACHE_LOCK:
         if key not in _CACHE:
-            cam = reader.rig()[camera].camera.astype(jnp.float32)
-            size = int(reader.meta.get("face_size", 0))
-            if size <= 0:
+            if int(reader.meta.get("face_size", 0)) <= 0:
                 raise DatasetError(f"{reader.root / 'capture.json'}: field 'face_size' missing or not positive")
-            lut = build_lut(CubeRig(size, faces=tuple(reader.faces), dtype=jnp.float32), cam)
-            rays = jax.jit(lambda c: gt.pixel_rays(c, dtype=jnp.float32))(cam)
-            _CACHE[key] = (lut, rays, gt.event_map_from_lut(lut))
+            _CACHE[key] = fisheye_constants(reader, camera, reader.rig()[camera].camera.astype(jnp.float32))
         return _CACHE[key]
 
 
 def _bev_constants(reader):
-    import jax
-    import jax.numpy as jnp
-
-    from .. import groundtruth as gt
     from ..io._bev import bev_sensor
+    from ..io._labels import compiled_pixel_rays
 
     cam, _ = bev_sensor(reader)
     key = ("bev", _file_key(reader.root / "sensors.json"))
     with _CACHE_LOCK:
         if key not in _CACHE:
-            _CACHE[key] = jax.jit(lambda c: gt.pixel_rays(c, dtype=jnp.float32))(cam)
+            _CACHE[key] = compiled_pixel_rays(cam)
         return _CACHE[key]
 
 

@@ -116,21 +116,8 @@ def _vmap_rest(cameras, rays, planned, boxes_prev, boxes, statics):
                    "vmap")
 
 
-@functools.partial(jax.jit, static_argnames="mode")
-def _rig_rays(cameras, *, mode: str):
-    rays = functools.partial(pixel_rays, dtype=jnp.float32)
-    if mode == "vmap":
-        return jax.vmap(rays)(cameras)
-    c = jax.tree_util.tree_leaves(cameras)[0].shape[0]
-    return [rays(_at(cameras, j)) for j in range(c)]
-
-
 _jit_pixel_rays = jax.jit(functools.partial(pixel_rays, dtype=jnp.float32))
-
-
-def pixel_rays_f32(camera):
-    """`pixel_rays` in float32, compiled."""
-    return _jit_pixel_rays(camera)
+_vmap_pixel_rays = jax.jit(jax.vmap(functools.partial(pixel_rays, dtype=jnp.float32)))
 
 
 def _per_camera(x, c: int, what: str, mode: str):
@@ -196,11 +183,11 @@ def rig_ground_truth(
 
     Returns a `CameraGroundTruth` whose arrays have leading axes ``(C,)`` or ``(N, C)``; entry
     ``[c]`` (``[n, c]``) equals `fisheye_ground_truth` of that camera and sample (labels
-    identical; flow within float32 rounding of differently fused pose products). ``max_candidates`` and the tile capacities of
-    the instance segmentation are the largest over the batch with ``batch="vmap"`` (one host round
-    trip), per camera and sample with ``batch="loop"`` (each camera's program is compiled on its
-    own anyway). ``batch``: how
-    the cameras and samples are mapped (module docstring). ``stacked=False`` returns a list with one
+    identical; flow within float32 rounding of differently fused pose products).
+    ``max_candidates`` and the tile capacities of the instance segmentation are the largest over
+    the batch with ``batch="vmap"`` (one host round trip), per camera and sample with
+    ``batch="loop"`` (each camera's program is compiled on its own anyway). ``batch``: how the
+    cameras and samples are mapped (module docstring). ``stacked=False`` returns a list with one
     `CameraGroundTruth` per camera (a list of such lists for ``N`` samples) instead: with
     ``batch="loop"`` it skips the copy of every output that stacking costs."""
     mode = resolve_batch_mode(batch)
@@ -226,42 +213,34 @@ def rig_ground_truth(
     if c2v.rotation_matrix.shape != (c, 3, 3):
         raise ValueError(f"rig_ground_truth: cameras_to_vehicle must be a batch of {c} poses, got {c2v.rotation_matrix.shape}")
     if rays is None:
-        rays = [pixel_rays_f32(cam) for cam in cameras] if isinstance(cameras, list) else _rig_rays(cameras, mode=mode)
-    elif isinstance(rays, list):
+        rays = [_jit_pixel_rays(cam) for cam in cameras] if mode == "loop" else _vmap_pixel_rays(cameras)
+    elif mode == "loop":
         rays = [(jnp.asarray(r[0], jnp.float32), jnp.asarray(r[1], bool)) for r in rays]
     else:
         rays = (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
     reach = float(max(margin_m, fallback_m))
-    per_sample, per_item = samples, (fp, fc)
-    if mode == "loop":
-        c2v_list = [_at(c2v, j) for j in range(c)]
-        per_camera = [(luts[j], cameras[j], c2v_list[j], rays[j]) for j in range(c)]
-        per_camera_rest = [(cameras[j], rays[j]) for j in range(c)]
-    else:
-        per_camera = (luts, cameras, c2v, rays)
     if mode == "vmap":
-        planned, sizes = _vmap_plan(*per_camera, fp, fc, *samples, carla_version, reach)
+        planned, sizes = _vmap_plan(luts, cameras, c2v, rays, fp, fc, *samples, carla_version, reach)
         k_host, busy_host, many_host = (int(v) for v in jax.device_get(jnp.max(sizes.reshape(-1, 3), axis=0)))
         statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates,
                                surface_samples, k_host, busy_host, many_host)
         out = _vmap_rest(cameras, rays, planned, samples[0], samples[1], statics)
-    else:
-        # Camera by camera: plan, read its static sizes back, queue the rest (asynchronously) and go
-        # on with the next camera's plan. Interleaving keeps one camera's intermediates alive at a
-        # time: planning every camera first and sharing one round trip was 0.1 s slower per sample.
-        def one(cam, smp, item, cam_rest):
-            planned, sizes = _jit_plan_one(cam, smp, item, carla_version, reach)
-            statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m,
-                                   max_candidates, surface_samples, *(int(v) for v in jax.device_get(sizes)))
-            return _jit_rest_one(cam_rest, smp[:2], planned, statics)
-
-        out = map_rig(lambda cam, smp, item: one(cam[0], smp, item, cam[1]),
-                      [(per_camera[j], per_camera_rest[j]) for j in range(c)], per_sample, per_item, n, c, "loop")
-    if mode == "loop":
         if not stacked:
-            return out[0] if single else out
-        return _stack(out[0]) if single else stack_rig(out)  # one copy of every output
+            rows = [[_at(_at(out, i), j) for j in range(c)] for i in range(n)]
+            return rows[0] if single else rows
+        return _at(out, 0) if single else out
+
+    # Loop: camera by camera, plan, read its static sizes back, queue the rest (asynchronously) and go
+    # on with the next camera's plan. Interleaving keeps one camera's intermediates alive at a time:
+    # planning every camera first and sharing one round trip was 0.1 s slower per sample.
+    def one(cam, smp, item):
+        planned, sizes = _jit_plan_one(cam, smp, item, carla_version, reach)
+        statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates,
+                               surface_samples, *(int(v) for v in jax.device_get(sizes)))
+        return _jit_rest_one((cam[1], cam[3]), smp[:2], planned, statics)
+
+    per_camera = [(luts[j], cameras[j], _at(c2v, j), rays[j]) for j in range(c)]
+    rows = map_rig(one, per_camera, samples, (fp, fc), n, c, "loop")
     if not stacked:
-        out = [[_at(_at(out, i), j) for j in range(c)] for i in range(n)]
-        return out[0] if single else out
-    return _at(out, 0) if single else out
+        return rows[0] if single else rows
+    return _stack(rows[0]) if single else stack_rig(rows)  # one copy of every output

@@ -18,7 +18,7 @@ import numpy as np
 
 from .._errors import ImageError, JaxfishError
 from ._images import PNG_LEVEL, read_image_metadata, write_image
-from ._labels import _carla_version, _frame_motion, write_depth_npy
+from ._labels import _carla_version, _frame_motion, compiled_pixel_rays, write_depth_npy
 
 #: Metadata key of the BEV scale/axes JSON in the BEV PNGs written by `write_bev_ground_truth`.
 BEV_METADATA_ATTRIBUTE = "jaxfish:bev"
@@ -311,7 +311,7 @@ def capture_camera_maps(reader, frame: int, *, luts: Mapping[str, Any] | None = 
             size = int(reader.meta.get("face_size", 0)) or stack.depth_m.shape[1]
             luts[name] = build_lut(CubeRig(size, faces=faces, dtype=jnp.float32), cam)
         if name not in rays:
-            rays[name] = _jit_rays()(cam)
+            rays[name] = compiled_pixel_rays(cam)
         c2w = gt.camera_to_world(v2w, calib.camera_to_vehicle)
         r, s, v = kernel(luts[name], cam, rays[name], c2w, jnp.asarray(stack.depth_m), jnp.asarray(stack.semantic),
                          centre, rot, half, cls, float(margin_m))
@@ -328,18 +328,6 @@ def capture_camera_maps(reader, frame: int, *, luts: Mapping[str, Any] | None = 
 
 
 _KERNEL: list[Any] = []
-_RAYS: list[Any] = []
-
-
-def _jit_rays():
-    import jax
-    import jax.numpy as jnp
-
-    from .. import groundtruth as gt
-
-    if not _RAYS:
-        _RAYS.append(jax.jit(lambda c: gt.pixel_rays(c, dtype=jnp.float32)))
-    return _RAYS[0]
 
 
 def _jit_camera_maps():

@@ -36,6 +36,11 @@ _DTYPES = {
 }
 
 
+def is_png_level(level: Any) -> bool:
+    """Whether ``level`` is a valid zlib level for `write_image` (an integer 0-9, not a bool)."""
+    return isinstance(level, int) and not isinstance(level, bool) and 0 <= level <= 9
+
+
 def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None = None) -> np.ndarray:
     """Read an image as ``(H, W, C)`` in the file's own dtype (uint8, uint16, float16 or float32).
 
@@ -93,7 +98,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
         raise ImageError(f"{path}: unsupported pixel dtype {a.dtype}")
     if ext == ".png" and a.dtype not in (np.uint8, np.uint16):
         raise ImageError(f"{path}: PNG stores uint8/uint16 pixels, got {a.dtype} (use .exr for floats)")
-    if isinstance(png_level, bool) or not (isinstance(png_level, int) and 0 <= png_level <= 9):
+    if not is_png_level(png_level):
         raise ImageError(f"{path}: png_level must be an integer from 0 to 9, got {png_level!r}")
     if a.ndim == 2:
         a = a[..., None]  # OpenImageIO scrambles 2-D arrays (CONVENTIONS §8)

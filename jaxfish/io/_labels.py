@@ -4,6 +4,7 @@ displacement text file."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import pickle
@@ -374,7 +375,10 @@ def capture_rig_ground_truth(reader, frame: int, cameras: Sequence[str] | None =
         raise CaptureError(f"{reader.root}/calibration: camera(s) {missing} missing (have {sorted(rig)})")
     calibs = [rig[c].astype(jnp.float32) for c in names]
     cams = [cal.camera.astype(jnp.float32) for cal in calibs]
-    constants = _fill_constants(reader, frame, names, cams, constants or {})
+    given, constants = constants or {}, {}
+    for c, cam in zip(names, cams, strict=True):
+        lut, rays, emap = given.get(c) or (None, None, None)
+        constants[c] = fisheye_constants(reader, c, cam, frame=frame, lut=lut, rays=rays, event_map=emap)
     actors, boxes_prev, boxes, v2w_p, v2w = _frame_motion(reader, frame)
     version = _carla_version(reader, carla_version)
     jobs = [(c, inst, f) for inst in ("prev", "curr") for c in names for f in reader.faces]
@@ -396,21 +400,31 @@ def capture_rig_ground_truth(reader, frame: int, cameras: Sequence[str] | None =
              "actors": actors} for c, cam, truth in zip(names, cams, truths, strict=True)]
 
 
-def _fill_constants(reader, frame: int, names: list[str], cams: list, given: Mapping[str, Any]) -> dict[str, tuple]:
-    """``{camera: (lut, rays, event_map)}`` with every entry missing from ``given`` (or None) built."""
+def compiled_pixel_rays(camera):
+    """`jaxfish.groundtruth.pixel_rays` in float32, compiled once per process and camera type/size."""
+    return _jitted()["pixel_rays"](camera)
+
+
+def fisheye_constants(reader, camera: str, model, *, frame: int | None = None, lut=None, rays=None, event_map=None):
+    """The per-calibration constants ``(lut, rays, event_map)`` of a capture's fisheye ``camera``
+    (``model``: its float32 camera model), building those not given: the cube -> fisheye LUT at
+    the capture's ``face_size`` (or, when the header lacks it, the size of ``frame``'s first face),
+    `compiled_pixel_rays` and the event map of the LUT."""
     import jax.numpy as jnp
 
     from .. import groundtruth as gt
     from ..reprojection import CubeRig, build_lut
+    from ._capture import CaptureError
 
-    out = {}
-    for c, cam in zip(names, cams, strict=True):
-        lut, rays, emap = given.get(c) or (None, None, None)
-        if lut is None:
-            size = int(reader.meta.get("face_size", 0)) or reader.face(frame, c, reader.faces[0], actor_ids=False).rgb.shape[0]
-            lut = build_lut(CubeRig(size, faces=tuple(reader.faces), dtype=jnp.float32), cam)
-        out[c] = (lut, gt.pixel_rays(cam) if rays is None else rays, gt.event_map_from_lut(lut) if emap is None else emap)
-    return out
+    if lut is None:
+        size = int(reader.meta.get("face_size", 0))
+        if size <= 0:
+            if frame is None:
+                raise CaptureError(f"{reader.root / 'capture.json'}: field 'face_size' missing or not positive")
+            size = reader.face(frame, camera, reader.faces[0], actor_ids=False).rgb.shape[0]
+        lut = build_lut(CubeRig(size, faces=tuple(reader.faces), dtype=jnp.float32), model)
+    return (lut, compiled_pixel_rays(model) if rays is None else rays,
+            gt.event_map_from_lut(lut) if event_map is None else event_map)
 
 
 def _jitted():
@@ -421,7 +435,8 @@ def _jitted():
     global _JIT
     if _JIT is None:
         _JIT = {"colorize": jax.jit(gt.colorize_labels), "instance_colors": jax.jit(gt.instance_colors),
-                "z_depth": jax.jit(gt.range_to_z_depth)}
+                "z_depth": jax.jit(gt.range_to_z_depth),
+                "pixel_rays": jax.jit(functools.partial(gt.pixel_rays, dtype=np.float32))}
     return _JIT
 
 
