@@ -56,11 +56,18 @@ def fisheye_images(
     return FisheyeImages(rgb=rgb, range_m=rng, tag=tag.astype(jnp.int32), valid=valid)
 
 
-def range_to_z_depth(camera: AbstractCamera, range_m: Float[ArrayLike, "H W"]) -> Float[Array, "H W"]:
+def range_to_z_depth(
+    camera: AbstractCamera, range_m: Float[ArrayLike, "H W"], *,
+    rays: tuple[Float[ArrayLike, "H W 3"], Bool[ArrayLike, "H W"]] | None = None,
+) -> Float[Array, "H W"]:
     """Planar z-depth (along the camera's optical axis, metres) of a range map; far/sky pixels
-    (range >= 1000) stay 1000, pixels without a ray 0. Beyond 90 degrees z is negative."""
+    (range >= 1000) stay 1000, pixels without a ray 0. Beyond 90 degrees z is negative. ``rays``:
+    the camera's `pixel_rays`, when already computed (saves the unprojection)."""
     r = jnp.asarray(range_m)
-    rays, ok = camera.unproject(camera.pixel_grid(r.dtype))
+    if rays is None:
+        rays, ok = camera.unproject(camera.pixel_grid(r.dtype))
+    else:
+        rays, ok = jnp.asarray(rays[0]), jnp.asarray(rays[1], bool)
     z = r * rays[..., 2].astype(r.dtype)
     z = jnp.where(r >= FAR_RANGE_M, jnp.asarray(FAR_RANGE_M, r.dtype), z)
     return jnp.where(ok, z, 0.0)

@@ -71,7 +71,7 @@ def capture_bev_ground_truth(reader, frame: int, *, rays=None, backward_flow: bo
     Returns `capture_ground_truth`'s keys (``"truth"``: `jaxfish.groundtruth.CameraGroundTruth`
     from `jaxfish.groundtruth.view_ground_truth` with the capture's BEV camera and mount,
     ``"boxes_prev"``, ``"boxes"``, ``"vehicle_to_world_prev"``, ``"vehicle_to_world"``,
-    ``"camera"``, ``"actors"``, ``"events": None``) plus ``"height_m"`` ``(H, W)`` float32 metres
+    ``"camera"``, ``"rays"`` (as given), ``"actors"``, ``"events": None``) plus ``"height_m"`` ``(H, W)`` float32 metres
     above the ground (the capture's ``height_curr.exr``, or from the BEV depth when absent),
     ``"occupancy"`` ``(H, W)`` bool (`jaxfish.bev.occupancy_map`), ``"metres_per_pixel"`` (float)
     and ``"camera_to_vehicle"`` (`Pose`). ``options`` go to ``view_ground_truth``."""
@@ -106,7 +106,7 @@ def capture_bev_ground_truth(reader, frame: int, *, rays=None, backward_flow: bo
     thr = jbev.OCCUPANCY_MIN_HEIGHT_M if occupancy_min_height_m is None else float(occupancy_min_height_m)
     occupancy = np.asarray(jbev.occupancy_map(height, min_height_m=thr))
     return {"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
-            "vehicle_to_world": v2w, "events": None, "camera": cam, "actors": actors, "height_m": height,
+            "vehicle_to_world": v2w, "events": None, "camera": cam, "rays": rays, "actors": actors, "height_m": height,
             "occupancy": occupancy, "occupancy_min_height_m": thr,
             "metres_per_pixel": float(cam.metres_per_pixel), "camera_to_vehicle": c2v}
 

@@ -58,13 +58,18 @@ def write_kitti_flow(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarra
     """Write KITTI's 16-bit PNG: channels ``(u, v, valid)`` as uint16 with
     ``stored = round(64 value + 2**15)`` (clipped to the uint16 range, i.e. |flow| < 512 px);
     invalid pixels store 0 in every channel."""
-    f = np.asarray(flow, np.float64)
+    f = np.asarray(flow)
     if f.ndim != 3 or f.shape[-1] != 2:
         raise ImageError(f"{path}: flow must have shape (H, W, 2), got {f.shape}")
     ok = np.ones(f.shape[:2], bool) if valid is None else np.asarray(valid, bool)
-    q = np.clip(np.rint(f * KITTI_FLOW_SCALE + KITTI_FLOW_OFFSET), 0, 65535).astype(np.uint16)
-    out = np.concatenate([q, ok[..., None].astype(np.uint16)], axis=-1)
-    out = np.where(ok[..., None], out, 0).astype(np.uint16)
+    # Scaling by 64 is exact in the flow's own float type, so rounding there and adding the offset
+    # in integers gives float64's result (a float32 sum would round the fraction first).
+    f = f if f.dtype in (np.float32, np.float64) else f.astype(np.float64)
+    scaled = np.rint(np.clip(f * KITTI_FLOW_SCALE, -KITTI_FLOW_OFFSET - 1, KITTI_FLOW_OFFSET))
+    q = np.clip(scaled.astype(np.int32) + KITTI_FLOW_OFFSET, 0, 65535)
+    out = np.empty(f.shape[:2] + (3,), np.uint16)
+    out[..., :2] = np.where(ok[..., None], q, 0)
+    out[..., 2] = ok
     return write_image(path, out, png_level=png_level)
 
 

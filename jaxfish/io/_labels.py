@@ -232,14 +232,23 @@ def depth_to_color(depth_m: np.ndarray) -> np.ndarray:
     """Colour rendering of a depth map (``depth_maps/colormap``): magma-like ramp on log depth over
     `DEPTH_COLOR_RANGE_M` (near = bright yellow, far = dark purple); 0 (no ray) and the sky (1000)
     are black. ``(H, W)`` metres -> ``(H, W, 3)`` uint8."""
-    d = np.asarray(depth_m, np.float64)
+    d = np.asarray(depth_m, np.float32)
     lo, hi = DEPTH_COLOR_RANGE_M
-    x = 1.0 - (np.log(np.clip(d, lo, hi)) - np.log(lo)) / (np.log(hi) - np.log(lo))
-    ramp = np.linspace(0.0, len(_MAGMA) - 1, 1024)
-    table = np.rint(np.stack([np.interp(ramp, np.arange(len(_MAGMA)), _MAGMA[:, c]) for c in range(3)], -1))
-    out = table.astype(np.uint8)[np.rint(x * 1023).astype(np.int64)]  # 1024-step ramp
+    # float32 (3x faster than float64 on a full frame): at most one step of the 1024-step ramp apart.
+    scale = np.float32(1023.0 / (np.log(hi) - np.log(lo)))
+    x = np.float32(1023.0) - (np.log(np.clip(d, np.float32(lo), np.float32(hi))) - np.float32(np.log(lo))) * scale
+    idx = np.clip(np.rint(x), 0, 1023).astype(np.intp)
+    # One 3-byte gather per pixel (a row gather of the (1024, 3) table is 5x slower).
+    out = _depth_ramp().view("V3").reshape(-1)[idx].view(np.uint8).reshape(idx.shape + (3,))
     out[~((d > 0) & (d < 999.0))] = 0
     return out
+
+
+@functools.cache
+def _depth_ramp() -> np.ndarray:
+    """The 1024 x 3 uint8 colour table of `depth_to_color` (far -> near)."""
+    ramp = np.linspace(0.0, len(_MAGMA) - 1, 1024)
+    return np.rint(np.stack([np.interp(ramp, np.arange(len(_MAGMA)), _MAGMA[:, c]) for c in range(3)], -1)).astype(np.uint8)
 
 
 def events_color(events: np.ndarray, *, width: int, height: int) -> np.ndarray:
@@ -325,8 +334,8 @@ def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None
     (`jaxfish.groundtruth.event_map_from_lut` of the LUT) are per-calibration constants: pass them
     when processing many frames (built here otherwise). Returns ``{"truth": CameraGroundTruth,
     "boxes_prev", "boxes": Boxes3D, "vehicle_to_world_prev", "vehicle_to_world": Pose, "events":
-    CARLA-dtype fisheye events (t in ns, time order), "camera": the fisheye model, "actors": the
-    actor records}``.
+    CARLA-dtype fisheye events (t in ns, time order), "camera": the fisheye model, "rays": its
+    `pixel_rays`, "actors": the actor records}``.
     """
     return capture_rig_ground_truth(reader, frame, [camera], constants={camera: (lut, rays, event_map)},
                                     backward_flow=backward_flow, carla_version=carla_version, **options)[0]
@@ -397,7 +406,7 @@ def capture_rig_ground_truth(reader, frame: int, cameras: Sequence[str] | None =
                                  **options)
     return [{"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
              "vehicle_to_world": v2w, "events": camera_events(reader, frame, c, constants[c][2]), "camera": cam,
-             "actors": actors} for c, cam, truth in zip(names, cams, truths, strict=True)]
+             "rays": constants[c][1], "actors": actors} for c, cam, truth in zip(names, cams, truths, strict=True)]
 
 
 def compiled_pixel_rays(camera):
@@ -476,7 +485,7 @@ def write_camera_ground_truth(root: str | os.PathLike, sample: str, camera: str,
     add(write_depth_npy(root / "depth_maps" / "raw_data" / f"{stem}.npy", rng))
     add(write_depth_exr(root / "depth_maps" / "exr" / f"{stem}.exr", rng, RANGE_DEPTH_DEFINITION))
     add(write_depth_npy(root / "depth_maps" / "z_depth" / f"{stem}.npy",
-                        np.asarray(jit["z_depth"](result["camera"], t.images.range_m))))
+                        np.asarray(jit["z_depth"](result["camera"], t.images.range_m, rays=result.get("rays")))))
     add(write_image(root / "depth_maps" / "colormap" / f"{stem}.png", depth_to_color(rng), png_level=png_level))
     pal = synwoodscape_palette_dict()
     sem = np.asarray(t.semantic)

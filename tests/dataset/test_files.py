@@ -55,6 +55,17 @@ def test_depth_colors_near_bright_far_dark_sky_black():
     assert c.dtype == np.int64 and c.shape == (1, 5, 3)
     lum = c[0].sum(-1)
     assert lum[0] > lum[1] > lum[2] > 0 and lum[3] == 0 and lum[4] == 0
+    # float32 evaluation: within one step of the 1024-step ramp of the float64 formula.
+    from jaxfish.io._labels import DEPTH_COLOR_RANGE_M, _depth_ramp
+
+    d = np.geomspace(0.01, 998.0, 5000).astype(np.float32)[None]
+    lo, hi = DEPTH_COLOR_RANGE_M
+    x = 1.0 - (np.log(np.clip(d.astype(np.float64), lo, hi)) - np.log(lo)) / (np.log(hi) - np.log(lo))
+    steps = np.rint(x * 1023).astype(int)
+    table = _depth_ramp().astype(int)
+    got = depth_to_color(d).astype(int)[0]
+    near = np.minimum.reduce([np.abs(got - table[np.clip(steps[0] + k, 0, 1023)]).max(-1) for k in (-1, 0, 1)])
+    assert np.all(near == 0)
 
 
 def test_build_options_reject_bad_values_and_record_the_png_level():

@@ -30,6 +30,8 @@ def test_z_depth_option(sample):
     rel = np.abs(z - zo)[v] / np.maximum(np.abs(zo[v]), 1.0)
     assert np.median(rel) < 1e-3
     assert np.all(z[np.asarray(img.range_m) >= 1000] == 1000)
+    zr = np.asarray(gt.range_to_z_depth(sample.camera, img.range_m, rays=gt.pixel_rays(sample.camera, dtype=img.range_m.dtype)))
+    np.testing.assert_allclose(zr, z, rtol=1e-6, atol=1e-6)  # precomputed rays: the same depths
 
 
 def test_semantics_agree_with_the_oracle(sample):

@@ -60,3 +60,17 @@ def test_flow_colour_png(tmp_path):
     write_flow_color(tmp_path / "c.png", _flow())
     img = read_image(tmp_path / "c.png")
     assert img.dtype == np.uint8 and img.shape == (7, 9, 3)
+
+
+def test_kitti_quantisation_equals_float64_rounding_at_ties_and_limits(tmp_path):
+    # Half-integer multiples of 1/64 (ties round to even) and values beyond the uint16 range.
+    vals = np.asarray([0.5, 1.5, -0.5, -1.5, 2.5, 100.25, 511.99, 512.0, 600.0, -512.0, -600.0, 0.0078125, -0.0078125],
+                      np.float32) / np.float32(1.0)
+    vals = np.concatenate([vals, (np.arange(-40, 40) + 0.5).astype(np.float32) / 64])
+    f = np.stack([vals, -vals], -1)[None]
+    write_kitti_flow(tmp_path / "k.png", f)
+    raw = read_image(tmp_path / "k.png")
+    want = np.clip(np.rint(f.astype(np.float64) * 64 + 2**15), 0, 65535).astype(np.uint16)
+    np.testing.assert_array_equal(raw[..., :2], want)
+    assert np.all(raw[..., 2] == 1)
+
