@@ -298,17 +298,31 @@ def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.nd
 
 
 # ---------------------------------------------------------------------------- capture -> ground truth
+#: Box slots are allocated in multiples of this many (inactive padding), so that frames whose actor
+#: counts differ (CARLA spawns and removes actors) share compiled programs instead of compiling per count.
+BOX_SLOT_QUANTUM = 32
+
+
+def box_slots(num_actors: int) -> int:
+    """The number of box slots for ``num_actors`` actors: the next multiple of `BOX_SLOT_QUANTUM`
+    (at least one quantum). Padding changes no output: inactive boxes own no pixel and no file row."""
+    q = BOX_SLOT_QUANTUM
+    return max(q, -(-int(num_actors) // q) * q)
+
+
 def _frame_motion(reader, frame: int):
-    """``(actors, boxes at t-1, boxes at t, vehicle -> world at t-1, at t)`` of a capture frame; a
-    malformed ``actors.json`` / ``ego.json`` raises `CaptureError` naming the frame."""
+    """``(actors, boxes at t-1, boxes at t, vehicle -> world at t-1, at t)`` of a capture frame (the
+    boxes padded to `box_slots`); a malformed ``actors.json`` / ``ego.json`` raises `CaptureError`
+    naming the frame."""
     from .. import groundtruth as gt
     from ._capture import CaptureError
 
     actors = reader.actors(frame)  # names the frame when it is missing
     ego = reader.ego(frame)
     try:
-        boxes_prev = gt.boxes_from_actors(actors, "t-1")
-        boxes = gt.boxes_from_actors(actors, "t")
+        pad = box_slots(len(actors))
+        boxes_prev = gt.boxes_from_actors(actors, "t-1", pad_to=pad)
+        boxes = gt.boxes_from_actors(actors, "t", pad_to=pad)
         v2w_p = gt.vehicle_to_world_from_carla(np.asarray(ego["transform_prev"]["location"], np.float32),
                                                np.asarray(ego["transform_prev"]["rotation"], np.float32))
         v2w = gt.vehicle_to_world_from_carla(np.asarray(ego["transform"]["location"], np.float32),

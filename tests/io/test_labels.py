@@ -80,3 +80,15 @@ def test_box_pickle_and_displacements(tmp_path):
     assert (tmp_path / "d.txt").read_text().splitlines()[1] == "3 10 0.750000 1"
     write_depth_npy(tmp_path / "d.npy", np.full((2, 2), 1000.0))
     assert np.load(tmp_path / "d.npy").dtype == np.float32
+
+
+def test_box_slots_share_one_size_across_actor_counts():
+    from jaxfish import groundtruth as gt
+    from jaxfish.io._labels import BOX_SLOT_QUANTUM, box_slots
+
+    q = BOX_SLOT_QUANTUM
+    assert [box_slots(n) for n in (0, 1, q, q + 1, 3 * q)] == [q, q, q, 2 * q, 3 * q]
+    actor = {"id": 7, "category": "four_wheeler", "bounding_box": {"location": [0, 0, 0.7], "extent": [2, 1, 0.7]},
+             "transform": {"location": [5, 0, 0], "rotation": [0, 0, 0]}}
+    boxes = gt.boxes_from_actors([actor], "t", pad_to=box_slots(1))
+    assert boxes.num_boxes == q and int(np.sum(np.asarray(boxes.active))) == 1
