@@ -60,23 +60,12 @@ def _stack(trees):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
 
 
-def map_rig(fn, per_camera, per_sample, per_item, n: int, c: int, mode: str):
-    """``fn(per_camera[j], per_sample[i], per_item[i, j])`` for ``n`` samples x ``c`` cameras.
-
-    ``mode="vmap"`` (call it inside `jax.jit`): nested `jax.vmap`, a pytree with leading axes
-    ``(n, c)``; ``per_camera``, ``per_sample`` and ``per_item`` are pytrees whose leaves carry the
-    camera axis, the sample axis or both. ``mode="loop"``: one call of ``fn`` (compiled
-    functions) per camera and sample, dispatched asynchronously; returns the nested list
-    ``[i][j]`` (unstacked: stacking copies every output); ``per_camera`` is a list of the cameras'
-    pytrees."""
-    if mode == "vmap":
-        over_cameras = jax.vmap(fn, in_axes=(0, None, 0))
-        return jax.vmap(over_cameras, in_axes=(None, 0, 0))(per_camera, per_sample, per_item)
-    rows = []
-    for i in range(n):
-        smp, item = _at(per_sample, i), _at(per_item, i)
-        rows.append([fn(per_camera[j], smp, _at(item, j)) for j in range(c)])
-    return rows
+def map_rig(fn, per_camera, per_sample, per_item):
+    """``fn(per_camera[j], per_sample[i], per_item[i, j])`` over ``n`` samples x ``c`` cameras by
+    nested `jax.vmap` (call it inside `jax.jit`): pytrees whose leaves carry the camera axis, the
+    sample axis or both ``(n, c)``; returns a pytree with leading axes ``(n, c)``."""
+    over_cameras = jax.vmap(fn, in_axes=(0, None, 0))
+    return jax.vmap(over_cameras, in_axes=(None, 0, 0))(per_camera, per_sample, per_item)
 
 
 def stack_rig(rows):
@@ -108,17 +97,13 @@ def _rest_one(cam, smp, item, statics):
 @functools.partial(jax.jit, static_argnums=(10, 11))
 def _vmap_plan(luts, cameras, cameras_to_vehicle, rays, faces_prev, faces, boxes_prev, boxes, v2w_prev, v2w,
                carla_version: str, reach: float):
-    n, c = faces[0].shape[:2]
     fn = functools.partial(_plan_one, carla_version=carla_version, reach=reach)
-    return map_rig(fn, (luts, cameras, cameras_to_vehicle, rays), (boxes_prev, boxes, v2w_prev, v2w),
-                   (faces_prev, faces), n, c, "vmap")
+    return map_rig(fn, (luts, cameras, cameras_to_vehicle, rays), (boxes_prev, boxes, v2w_prev, v2w), (faces_prev, faces))
 
 
 @functools.partial(jax.jit, static_argnums=(5,))
 def _vmap_rest(cameras, rays, planned, boxes_prev, boxes, statics):
-    n, c = planned[0].valid.shape[:2]
-    return map_rig(functools.partial(_rest_one, statics=statics), (cameras, rays), (boxes_prev, boxes), planned, n, c,
-                   "vmap")
+    return map_rig(functools.partial(_rest_one, statics=statics), (cameras, rays), (boxes_prev, boxes), planned)
 
 
 _jit_pixel_rays = jax.jit(functools.partial(pixel_rays, dtype=jnp.float32))
@@ -204,14 +189,11 @@ def rig_ground_truth(
         if a.shape != b.shape:
             raise ValueError(f"rig_ground_truth: faces_prev {a.shape} and faces {b.shape} differ")
     samples = (boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world)
-    if single:
-        fp, fc = (tuple(x[None] for x in fp), tuple(x[None] for x in fc))
-        samples = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], samples)
-    n, c = fc[0].shape[:2]
+    n, c = (1, fc[0].shape[0]) if single else fc[0].shape[:2]
     luts, cameras = _per_camera(luts, c, "luts", mode), _per_camera(cameras, c, "cameras", mode)
     if rays is not None:
         rays = _per_camera([tuple(r) for r in rays] if isinstance(rays, list) else tuple(rays), c, "rays", mode)
-    for leaf in jax.tree_util.tree_leaves(samples):
+    for leaf in () if single else jax.tree_util.tree_leaves(samples):
         if leaf.shape[:1] != (n,):
             raise ValueError(f"rig_ground_truth: {n} samples in the faces, but a box / pose array of shape {leaf.shape}")
     c2v = Pose(jnp.asarray(cameras_to_vehicle.rotation_matrix, jnp.float32), jnp.asarray(cameras_to_vehicle.translation, jnp.float32))
@@ -225,6 +207,9 @@ def rig_ground_truth(
         rays = (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
     reach = float(max(margin_m, fallback_m))
     if mode == "vmap":
+        if single:
+            fp, fc = (tuple(x[None] for x in fp), tuple(x[None] for x in fc))
+            samples = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], samples)
         planned, sizes = _vmap_plan(luts, cameras, c2v, rays, fp, fc, *samples, carla_version, reach)
         k_host, busy_host, many_host = (int(v) for v in jax.device_get(jnp.max(sizes.reshape(-1, 3), axis=0)))
         statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates,
@@ -246,8 +231,14 @@ def rig_ground_truth(
         return _finish(camera, ray, img_p, img, c2v_j, *smp, carla_version, motion_threshold_m, backward_flow, margin_m,
                        fallback_m, max_candidates, surface_samples)
 
+    # Each camera's faces in one indexing step (a view of NumPy faces, one slice of device faces).
     per_camera = [(luts[j], cameras[j], _at(c2v, j), rays[j]) for j in range(c)]
-    rows = map_rig(one, per_camera, samples, (fp, fc), n, c, "loop")
+    rows = []
+    for i in range(n):
+        smp = samples if single else _at(samples, i)
+        index = [(j,) if single else (i, j) for j in range(c)]
+        rows.append([one(per_camera[j], smp, jax.tree_util.tree_map(lambda x, k=index[j]: x[k], (fp, fc)))
+                     for j in range(c)])
     if not stacked:
         return rows[0] if single else rows
     return _stack(rows[0]) if single else stack_rig(rows)  # one copy of every output
