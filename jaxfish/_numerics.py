@@ -82,16 +82,52 @@ def stack_last(arrays: list[Array]) -> Array:
     return jnp.moveaxis(jnp.stack(arrays, axis=0), 0, -1)
 
 
+#: Cephes ``atanf`` coefficients: ``atan(t) = t + t s P(s)``, ``s = t²``, for ``|t| <= tan(pi / 8)``.
+_ATANF = (8.05374449538e-2, -1.38776856032e-1, 1.99777106478e-1, -3.33329491539e-1)
+
+
+def arctan_unit(a: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+    """``arctan(a)`` for ``a`` in ``[0, 1]``. In float32 a polynomial that vectorises (Cephes
+    ``atanf``: within 3 ulp of the float64 value, where XLA's own ``arctan`` is within 5, and 8x
+    faster on CPU, where XLA calls the scalar libm function per element); other dtypes use
+    ``jnp.arctan`` (float64 keeps full precision). Differentiable everywhere on ``[0, 1]``."""
+    if a.dtype != jnp.float32:
+        return jnp.arctan(a)
+    f = jnp.float32
+    big = a > f(math.tan(math.pi / 8))
+    t = jnp.where(big, (a - 1) / (a + 1), a)
+    s = t * t
+    p0, p1, p2, p3 = (f(c) for c in _ATANF)
+    p = (((p0 * s + p1) * s + p2) * s + p3) * s * t + t
+    return jnp.where(big, f(math.pi / 4) + p, p)
+
+
+def arctan2(y: Float[Array, "*batch"], x: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+    """``jnp.arctan2(y, x)``; in float32 through `arctan_unit` of the smaller over the larger
+    magnitude (the quadrant from the signs, signed zeros included, as IEEE ``atan2``), which
+    vectorises on CPU (8x faster). Other dtypes call ``jnp.arctan2`` itself."""
+    if jnp.result_type(y, x) != jnp.float32:
+        return jnp.arctan2(y, x)
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    steep = ay > ax
+    lo = jnp.where(steep, ax, ay)
+    hi = jnp.where(steep, ay, ax)
+    a = arctan_unit(lo / jnp.where(hi > 0, hi, 1.0))
+    a = jnp.where(steep, math.pi / 2 - a, a)
+    a = jnp.where(jnp.signbit(x), math.pi - a, a)
+    return jnp.where(jnp.signbit(y), -a, a)
+
+
 def incidence_angle(chi: Float[Array, "*batch"], z: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """``atan2(chi, z)`` for ``chi >= 0`` (the angle from the optical axis, in ``[0, pi]``) through
-    ``arctan`` of the smaller over the larger magnitude: as accurate as XLA's ``atan2`` (within
-    one ulp of the float64 value) and 2.5x faster on CPU, where ``atan2`` does not vectorise.
-    ``chi = z = 0`` gives 0."""
+    `arctan_unit` of the smaller over the larger magnitude: in float64 within one ulp of the
+    float64 ``atan2``, in float32 within a few ulp and vectorised (XLA's ``atan2`` calls libm per
+    element on CPU: 17 ms for a 1280 x 966 frame, 1 ms here). ``chi = z = 0`` gives 0."""
     az = jnp.abs(z)
     steep = chi > az  # branches by `where`, not min/max: exact gradients where chi == |z|
     lo = jnp.where(steep, az, chi)
     hi = jnp.where(steep, chi, az)
-    a = jnp.arctan(lo / jnp.where(hi > 0, hi, 1.0))
+    a = arctan_unit(lo / jnp.where(hi > 0, hi, 1.0))
     a = jnp.where(steep, math.pi / 2 - a, a)
     return jnp.where(z < 0, math.pi - a, a)
 

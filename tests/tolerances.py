@@ -45,6 +45,7 @@ FLOW_ORACLE_EPE_PX = 1e-2  # analytic flow from the oracle's own range and actor
 FLOW_PIPELINE_EPE_MEDIAN_PX = 0.1  # cube faces -> fisheye -> flow vs the oracle motion, median end-point error
 FLOW_PIPELINE_EPE_P90_PX = 0.5  # ... 90th percentile (depth edges resampled from another surface dominate the tail)
 FLOW_WARP_RGB_MEAN = 0.03  # mean |I_t(p + flow) - I_{t-1}(p)| on valid pixels, RGB in [0, 1] (bilinear texture sampling)
+ATAN_F32_ULP = 3.0  # float32 polynomial arctan (Cephes atanf) vs float64 arctan: ulp of the result
 FLOW_COLOR_JPEG = 6.0  # flow colour coding vs flow_vis' JPEG reference: mean absolute difference (uint8 levels)
 INSTANCE_ORACLE_AGREEMENT = 0.98  # fraction of the oracle's actor pixels given the same actor id
 KITTI_FLOW_PX = 1.0 / 128  # KITTI PNG quantisation (1/64 px steps)

@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
+from .._numerics import arctan2
+
 #: Hues of the colour wheel: red-yellow 15, yellow-green 6, green-cyan 4, cyan-blue 11,
 #: blue-magenta 13, magenta-red 6 (55 in all).
 WHEEL_SEGMENTS: tuple[int, ...] = (15, 6, 4, 11, 13, 6)
@@ -69,7 +71,7 @@ def flow_to_color(
     wheel = jnp.asarray(flow_colour_wheel(), dtype) / 255.0
     n = wheel.shape[0]
     rad = jnp.sqrt(u * u + v * v)
-    a = jnp.arctan2(-v, -u) / jnp.pi
+    a = arctan2(-v, -u) / jnp.pi  # vectorised in float32; float64 within an ulp of flow_vis' np.arctan2
     fk = (a + 1) / 2 * (n - 1)
     k0 = jnp.floor(fk).astype(jnp.int32)
     k1 = jnp.where(k0 + 1 == n, 0, k0 + 1)
