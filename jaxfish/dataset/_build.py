@@ -217,7 +217,7 @@ def build_sample(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fra
 
     options = options or BuildOptions()
     out = Path(out_dir)
-    reader = CaptureReader(capture_dir)
+    reader = CaptureReader(capture_dir, reuse_decoded=True)  # frames built in order decode their t-1 images once
     if int(frame) not in reader.frames:
         raise DatasetError(f"{reader.root / 'capture.json'}: frame {frame} is not listed in field 'frames'")
     sid = sample_id(frame)

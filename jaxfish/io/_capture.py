@@ -11,6 +11,7 @@ from __future__ import annotations
 import concurrent.futures
 import json
 import os
+import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -108,19 +109,60 @@ def write_images(directory: Path, images: CameraImages, instant: str) -> None:
     write_image(directory / f"instance_{instant}.png", encode_instance(images.semantic, images.actor_id))
 
 
-def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
+def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = True,
+                reuse: tuple[str, ...] | None = None) -> CameraImages:
     """Read back what `write_images` wrote (RGB uint8, depth metres float32, tags, actor ids).
     ``actor_ids=False`` skips the instance PNG (`CameraImages.actor_id` is then None): the ground
-    truth never reads it (instances come from the 3D boxes)."""
+    truth never reads it (instances come from the 3D boxes). ``reuse``: a key naming the sensor
+    (e.g. ``(capture root, camera, face)``) under which decoded ``curr`` images are kept, so that
+    a later ``prev`` image that is a byte copy of them (consecutive ticks: see `CaptureReader`) is
+    not decoded again; the arrays returned are then read-only."""
     if instant not in INSTANTS:
         raise CaptureError(f"{directory}: instant must be one of {INSTANTS}, got {instant!r}")
-    rgb = bgra_to_rgb(read_image(directory / f"rgb_{instant}.png"))
-    depth = decode_depth(read_image(directory / f"depth_{instant}.png"))
-    sem = decode_semantic(read_image(directory / f"semantic_{instant}.png"))
+
+    def load(kind: str, decode):
+        path = directory / f"{kind}_{instant}.png"
+        return decode(read_image(path)) if reuse is None else _decoded_reusing(path, reuse + (kind,), instant, decode)
+
+    rgb = load("rgb", bgra_to_rgb)
+    depth = load("depth", decode_depth)
+    sem = load("semantic", decode_semantic)
     if not actor_ids:
         return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=None)  # type: ignore[arg-type]
     _, ids = decode_instance(read_image(directory / f"instance_{instant}.png"))
     return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=ids.astype(np.int32))
+
+
+# Decoded ``curr`` images by sensor (the last one read per key), with their file bytes: one
+# frame's worth (~150 MB for four 768-px cube rigs and the BEV).
+_LAST_CURR: dict[tuple[str, ...], tuple[bytes, np.ndarray]] = {}
+_LAST_CURR_LOCK = threading.Lock()
+
+
+def _decoded_reusing(path: Path, key: tuple[str, ...], instant: str, decode) -> np.ndarray:
+    """``decode(read_image(path))``, except that a ``prev`` file whose bytes equal the last ``curr``
+    file read under ``key`` returns that decoded array (an exact byte comparison, never a guess)."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return decode(read_image(path))  # read_image names the file and the reason
+    if instant == "prev":
+        with _LAST_CURR_LOCK:
+            hit = _LAST_CURR.get(key)
+        if hit is not None and hit[0] == data:
+            return hit[1]
+        return decode(read_image(path))
+    arr = decode(read_image(path))
+    arr.setflags(write=False)  # shared with later readers
+    with _LAST_CURR_LOCK:
+        _LAST_CURR[key] = (data, arr)
+    return arr
+
+
+def forget_decoded_images() -> None:
+    """Drop the decoded images `CaptureReader` keeps with ``reuse_decoded=True`` (frees ~150 MB)."""
+    with _LAST_CURR_LOCK:
+        _LAST_CURR.clear()
 
 
 def _pose_dict(pose) -> dict[str, Any]:
@@ -272,10 +314,17 @@ def steps_per_frame(rig: Mapping[str, Calibration]) -> int:
 
 
 class CaptureReader:
-    """Read a capture directory (any source) laid out as ``docs/capture_layout.md``."""
+    """Read a capture directory (any source) laid out as ``docs/capture_layout.md``.
 
-    def __init__(self, root: str | os.PathLike):
+    ``reuse_decoded=True`` keeps the decoded ``curr`` images of the cube faces and views (one frame's
+    worth per process, shared by readers: `forget_decoded_images` drops them): a frame whose
+    ``*_prev.png`` files are byte copies of the previous frame's ``*_curr.png`` (what
+    ``scripts/carla_capture.py`` writes for consecutive ticks) then decodes only its ``curr``
+    images when frames are read in order. The dataset builder turns it on."""
+
+    def __init__(self, root: str | os.PathLike, *, reuse_decoded: bool = False):
         self.root = Path(root)
+        self.reuse_decoded = bool(reuse_decoded)
         header = self.root / "capture.json"
         if not header.is_file():
             raise CaptureError(f"{header}: not a capture directory (capture.json missing)")
@@ -336,7 +385,8 @@ class CaptureReader:
 
     def face(self, frame: int, camera: str, face: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """One cube face's images at ``"prev"`` (t-1) or ``"curr"`` (t) (``actor_ids``: see `read_images`)."""
-        return read_images(self._frame(frame) / "cameras" / camera / face, instant, actor_ids=actor_ids)
+        reuse = (str(self.root.resolve()), camera, face) if self.reuse_decoded else None
+        return read_images(self._frame(frame) / "cameras" / camera / face, instant, actor_ids=actor_ids, reuse=reuse)
 
     def faces_stack(self, frame: int, camera: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """All faces of a camera stacked on a leading face axis (the `CubeRig` order of `faces`);
@@ -353,7 +403,8 @@ class CaptureReader:
 
     def view(self, frame: int, name: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """The ``"bev"`` or ``"front"`` camera's images (``actor_ids``: see `read_images`)."""
-        return read_images(self._frame(frame) / name, instant, actor_ids=actor_ids)
+        reuse = (str(self.root.resolve()), name) if self.reuse_decoded else None
+        return read_images(self._frame(frame) / name, instant, actor_ids=actor_ids, reuse=reuse)
 
     def height(self, frame: int, name: str = "bev") -> np.ndarray:
         """Height map (metres above the ground, float32) of the ``"bev"`` or ``"front"`` view at t."""

@@ -251,3 +251,26 @@ def test_backward_flow_option_writes_the_t_to_t_minus_1_flow(small_capture, refe
     for rel in marker["files"]:
         if not rel.startswith("optical_flow_backward/"):
             assert (out / rel).read_bytes() == (ref / rel).read_bytes(), rel
+
+
+def test_consecutive_frames_reuse_decoded_images_with_the_same_bytes(small_capture, tmp_path):
+    """A capture whose frame-1 ``*_prev.png`` are byte copies of frame 0's ``*_curr.png`` (what the
+    CARLA capture program writes for consecutive ticks): building the frames in order reuses the
+    decoded t images as the next t-1 images, and gives the bytes of building each frame afresh."""
+    from jaxfish.dataset import build_sample
+    from jaxfish.io import forget_decoded_images
+
+    cap = tmp_path / "cap"
+    shutil.copytree(small_capture, cap)
+    for curr in (cap / "frames" / "000000").rglob("*_curr.png"):
+        if not curr.name.startswith(("instance", "height")):
+            rel = curr.relative_to(cap / "frames" / "000000")
+            shutil.copyfile(curr, cap / "frames" / "000001" / rel.parent / curr.name.replace("_curr", "_prev"))
+    forget_decoded_images()
+    in_order = [build_sample(cap, tmp_path / "in_order", f) for f in (0, 1)]
+    fresh = []
+    for f in (0, 1):
+        forget_decoded_images()
+        fresh.append(build_sample(cap, tmp_path / "fresh", f))
+    forget_decoded_images()
+    assert in_order == fresh  # the markers list every file with its SHA-256

@@ -89,3 +89,34 @@ def test_reader_errors_name_the_file(tmp_path, capture):
         CaptureReader(tmp_path)
     with pytest.raises(CaptureError, match="instant"):
         reader.face(0, "FV", "front", "next")
+
+
+def test_reuse_decoded_prev_images_that_copy_the_previous_curr(tmp_path, capture):
+    import shutil
+
+    from jaxfish.io import forget_decoded_images
+
+    root, *_ = capture
+    copy = tmp_path / "cap"
+    shutil.copytree(root, copy)
+    face, view = copy / "frames/000001/cameras/FV/front", copy / "frames/000001/bev"
+    for kind in ("rgb", "depth", "semantic"):  # frame 1's t-1 = frame 0's t, as scripts/carla_capture.py writes it
+        shutil.copyfile(copy / f"frames/000000/cameras/FV/front/{kind}_curr.png", face / f"{kind}_prev.png")
+        shutil.copyfile(copy / f"frames/000000/bev/{kind}_curr.png", view / f"{kind}_prev.png")
+    shutil.copyfile(copy / "frames/000000/cameras/FV/left/rgb_prev.png", copy / "frames/000001/cameras/FV/left/rgb_prev.png")
+    forget_decoded_images()
+    reader, plain = CaptureReader(copy, reuse_decoded=True), CaptureReader(copy)
+    curr0, bev0 = reader.face(0, "FV", "front", "curr", actor_ids=False), reader.view(0, "bev", "curr", actor_ids=False)
+    left0 = reader.face(0, "FV", "left", "curr", actor_ids=False)
+    prev1, bev1 = reader.face(1, "FV", "front", "prev", actor_ids=False), reader.view(1, "bev", "prev", actor_ids=False)
+    for k in ("rgb", "depth_m", "semantic"):
+        assert getattr(prev1, k) is getattr(curr0, k) and getattr(bev1, k) is getattr(bev0, k)  # not decoded again
+        assert not getattr(prev1, k).flags.writeable
+        np.testing.assert_array_equal(getattr(prev1, k), getattr(plain.face(1, "FV", "front", "prev"), k))
+    # A prev file that is not a copy of the last curr read for its sensor is decoded from its own bytes.
+    left1 = reader.face(1, "FV", "left", "prev", actor_ids=False)
+    assert left1.rgb is not left0.rgb
+    np.testing.assert_array_equal(left1.rgb, plain.face(1, "FV", "left", "prev").rgb)
+    np.testing.assert_array_equal(left1.depth_m, plain.face(1, "FV", "left", "prev").depth_m)
+    forget_decoded_images()
+    assert reader.face(1, "FV", "front", "prev", actor_ids=False).rgb is not curr0.rgb
