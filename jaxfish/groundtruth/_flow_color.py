@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
-from .._numerics import arctan2
+from .._numerics import arctan2, materialize
 
 #: Hues of the colour wheel: red-yellow 15, yellow-green 6, green-cyan 4, cyan-blue 11,
 #: blue-magenta 13, magenta-red 6 (55 in all).
@@ -60,10 +60,12 @@ def flow_to_color(
     f = f.astype(dtype)
     ok = jnp.ones(f.shape[:-1], bool) if valid is None else jnp.asarray(valid, bool)
     f = jnp.where(ok[..., None], f, 0.0)
-    u, v = f[..., 0], f[..., 1]
-    rad = jnp.sqrt(u * u + v * v)
+    # Planes, computed once: XLA:CPU reduces (the max) and fuses interleaved (..., 2) data an order of
+    # magnitude slower (the colour coding of a 1280 x 966 field took 47 ms, 30 ms with planes).
+    u, v = materialize((f[..., 0], f[..., 1]), f.reshape(-1)[0])
     if max_radius is None:
-        rmax = jnp.max(rad, axis=(-2, -1), keepdims=True)
+        # max(sqrt(x)) == sqrt(max(x)) exactly (sqrt is monotone and correctly rounded): one sqrt.
+        rmax = jnp.sqrt(jnp.max(u * u + v * v, axis=(-2, -1), keepdims=True))
     else:
         rmax = jnp.asarray(max_radius, dtype)
     scale = rmax + jnp.asarray(1e-5, dtype)
@@ -71,7 +73,7 @@ def flow_to_color(
     wheel = jnp.asarray(flow_colour_wheel(), dtype) / 255.0
     n = wheel.shape[0]
     rad = jnp.sqrt(u * u + v * v)
-    a = arctan2(-v, -u) / jnp.pi  # vectorised in float32; float64 within an ulp of flow_vis' np.arctan2
+    a = arctan2(-v, -u) / jnp.pi  # float32: a polynomial that vectorises; float64: jnp.arctan2 (flow_vis parity)
     fk = (a + 1) / 2 * (n - 1)
     k0 = jnp.floor(fk).astype(jnp.int32)
     k1 = jnp.where(k0 + 1 == n, 0, k0 + 1)
