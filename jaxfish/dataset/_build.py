@@ -48,7 +48,8 @@ class BuildOptions:
     slower to write); ``write_threads`` writes files in a thread pool while the next camera computes
     (0 = inline); ``tune_allocator`` applies `tune_allocator` in the processes that build samples
     (off by default: no measurable gain for a whole build, whose time is mostly I/O, and 1 GB more
-    peak memory)."""
+    peak memory; applied anyway in a process whose environment sets ``MALLOC_TRIM_THRESHOLD_``,
+    as dask's nannies do, where glibc's dynamic mmap threshold is already off)."""
 
     backward_flow: bool = False
     bev: bool = True
