@@ -57,9 +57,11 @@ def _worker_peak_mb() -> float:
 
 
 def bench_dask(capture: Path, scratch: Path, workers: int) -> tuple[float, float, list[float]]:
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+    from jaxfish.dataset import local_cluster
+
+    with local_cluster(workers) as cluster, \
             Client(cluster) as client:
         warm = client.run(_warm, str(capture), str(scratch / f"dask{workers}"))
         n = 2 * workers

@@ -398,25 +398,14 @@ def build_dataset(
 def _run_dask(capture_dir: str, out_dir: str, frames: list[int], options: BuildOptions, scheduler: str | None,
               workers: int | None, processes: bool, record: Callable[[str, str | None], None]) -> None:
     try:
-        from distributed import Client, LocalCluster, as_completed
+        from distributed import Client, as_completed
     except ImportError as e:  # pragma: no cover - depends on the environment
         raise DatasetError("dask.distributed is not installed: pip install 'jaxfish[distributed]'") from e
     cluster = None
     if scheduler is not None:
         client = Client(scheduler)
     else:
-        n = int(workers or 1)
-        if n < 1:
-            raise DatasetError(f"workers must be at least 1, got {workers}")
-        import dask
-
-        # Dask's nannies export MALLOC_TRIM_THRESHOLD_=65536 to their workers, which turns off glibc's
-        # dynamic mmap threshold: every image-sized buffer then becomes a fresh, page-faulting mapping
-        # (a sample took 1.75x the CPU time of a serial build). Our workers keep glibc's defaults.
-        environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
-                   if k != "MALLOC_TRIM_THRESHOLD_"}
-        with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=None)
+        cluster = local_cluster(int(workers or 1), processes=processes)
         client = Client(cluster)
     try:
         futures = [client.submit(_sample_task, capture_dir, out_dir, f, options, key=f"jaxfish-sample-{sample_id(f)}",
@@ -431,3 +420,24 @@ def _run_dask(capture_dir: str, out_dir: str, frames: list[int], options: BuildO
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def local_cluster(workers: int, *, processes: bool = True):
+    """A ``distributed.LocalCluster`` of ``workers`` single-threaded workers (processes unless
+    ``processes=False``) as `build_dataset` starts it for ``workers=N``.
+
+    Dask's nannies export ``MALLOC_TRIM_THRESHOLD_=65536`` to their workers, which turns off
+    glibc's dynamic mmap threshold: every image-sized buffer then becomes a fresh, page-faulting
+    mapping, and a sample took 1.75x the CPU time of a serial build. These workers keep glibc's
+    defaults."""
+    try:
+        import dask
+        from distributed import LocalCluster
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise DatasetError("dask.distributed is not installed: pip install 'jaxfish[distributed]'") from e
+    if workers < 1:
+        raise DatasetError(f"workers must be at least 1, got {workers}")
+    environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
+               if k != "MALLOC_TRIM_THRESHOLD_"}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None)

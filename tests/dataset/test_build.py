@@ -274,3 +274,20 @@ def test_consecutive_frames_reuse_decoded_images_with_the_same_bytes(small_captu
         fresh.append(build_sample(cap, tmp_path / "fresh", f))
     forget_decoded_images()
     assert in_order == fresh  # the markers list every file with its SHA-256
+
+
+def _worker_environ():
+    return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")}
+
+
+def test_local_cluster_workers_keep_glibcs_dynamic_mmap_threshold():
+    from distributed import Client
+
+    from jaxfish.dataset import DatasetError, local_cluster
+
+    with pytest.raises(DatasetError, match="at least 1"):
+        local_cluster(0)
+    with local_cluster(1) as cluster, Client(cluster) as client:
+        (env,) = client.run(_worker_environ).values()
+    assert env["MALLOC_TRIM_THRESHOLD_"] is None  # dask's nannies would set 65536
+    assert env["OMP_NUM_THREADS"] == "1"  # the rest of dask's worker environment is kept
