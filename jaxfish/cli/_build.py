@@ -33,7 +33,7 @@ def parse_frames(text: str | None) -> list[int] | None:
 
 def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
               workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
-              motion_threshold_m: float = 0.5, png_level: int = 1):
+              motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1):
     """Run `jaxfish.dataset.build_dataset` with a rich progress bar (samples/s); returns the report."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -43,7 +43,7 @@ def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, sch
     reader = CaptureReader(capture_dir)
     total = len(frames) if frames is not None else len(reader.frames)
     options = BuildOptions(backward_flow=backward_flow, bev=bev, motion_threshold_m=motion_threshold_m,
-                           png_level=png_level, write_threads=write_threads)
+                           png_level=png_level, write_threads=write_threads, batch_frames=batch_frames)
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), console=console) as bar:
         task = bar.add_task("build", total=total, rate="")
@@ -74,6 +74,8 @@ def build(
     motion_threshold_m: float = typer.Option(0.5, "--motion-threshold", help="Motion-mask threshold (metres)."),
     png_level: int = typer.Option(1, "--png-level", min=0, max=9,
                                   help="zlib level of every PNG: 1 fastest, 6-9 ~30 % smaller PNGs, 2-4x slower."),
+    batch_frames: int = typer.Option(1, "--batch-frames", min=1,
+                                     help="Consecutive samples per batched ground-truth call (one vmapped program on a GPU)."),
 ) -> None:
     """Build a SynWoodScape-style dataset from a capture: every camera's images, depth, semantics,
     instances, motion, flow, events and boxes, plus dataset.json. Resumable (complete samples are
@@ -86,6 +88,6 @@ def build(
         raise fail(f"--write-threads must be >= 0, got {write_threads}")
     report = run_build(capture_dir, out_dir, frames=parse_frames(frames), scheduler=scheduler, workers=workers,
                        processes=processes, backward_flow=backward_flow, bev=bev, write_threads=write_threads,
-                       motion_threshold_m=motion_threshold_m, png_level=png_level)
+                       motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames)
     if not report.ok:
         raise typer.Exit(1)

@@ -49,7 +49,11 @@ class BuildOptions:
     (0 = inline); ``tune_allocator`` applies `tune_allocator` in the processes that build samples
     (off by default: no measurable gain for a whole build, whose time is mostly I/O, and 1 GB more
     peak memory; applied anyway in a process whose environment sets ``MALLOC_TRIM_THRESHOLD_``,
-    as dask's nannies do, where glibc's dynamic mmap threshold is already off)."""
+    as dask's nannies do, where glibc's dynamic mmap threshold is already off); ``batch_frames``
+    computes the fisheye ground truth of that many consecutive samples in one batched call
+    (`build_samples`; one dask task each): no faster on CPU, where the cameras and frames are
+    looped anyway, but one wide `jax.vmap` program on an accelerator; it holds that many samples in
+    memory (~0.5 GB each at full size)."""
 
     backward_flow: bool = False
     bev: bool = True
@@ -57,6 +61,7 @@ class BuildOptions:
     png_level: int = 1
     write_threads: int = 2
     tune_allocator: bool = False
+    batch_frames: int = 1
 
     def __post_init__(self) -> None:
         from ..io._images import is_png_level
@@ -65,9 +70,12 @@ class BuildOptions:
             raise DatasetError(f"BuildOptions: png_level must be an integer from 0 to 9, got {self.png_level!r}")
         if self.write_threads < 0:
             raise DatasetError(f"BuildOptions: write_threads must be >= 0, got {self.write_threads}")
+        if not isinstance(self.batch_frames, int) or self.batch_frames < 1:
+            raise DatasetError(f"BuildOptions: batch_frames must be an integer >= 1, got {self.batch_frames!r}")
 
     def to_dict(self) -> dict[str, Any]:
-        """The options that shape the output (``write_threads`` and ``tune_allocator`` do not)."""
+        """The options that shape the output (``write_threads``, ``tune_allocator`` and, on CPU,
+        ``batch_frames`` do not)."""
         return {"backward_flow": self.backward_flow, "bev": self.bev, "motion_threshold_m": self.motion_threshold_m,
                 "png_level": self.png_level}
 
@@ -206,6 +214,17 @@ def build_sample(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fra
     Pure in (capture, frame, options): the same inputs give the same bytes in any process.
     Returns ``{"sample", "frame", "layout_version", "files": {relative path: sha256}}`` (the marker's content).
     Raises on a missing or corrupt capture file (`jaxfish.io.CaptureError` naming the file)."""
+    return build_samples(capture_dir, out_dir, [frame], options)[0]
+
+
+def build_samples(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, frames: Sequence[int],
+                  options: BuildOptions | None = None) -> list[dict[str, Any]]:
+    """`build_sample` for several frames whose fisheye ground truth is computed in one batched call
+    (`jaxfish.io.capture_rig_ground_truth` with a sequence of frames: `rig_ground_truth` mapped
+    over the frames and the cameras). On CPU the bytes are those of building each frame alone;
+    with an accelerator (`jax.vmap` over the batch) values agree to float32 rounding. Each sample's
+    files and marker are written as soon as its ground truth is done; the first error raises
+    (samples already marked complete stay complete). Returns the markers, in order."""
     from ..io import (
         CaptureReader,
         atomic_write_text,
@@ -219,54 +238,59 @@ def build_sample(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fra
     options = options or BuildOptions()
     out = Path(out_dir)
     reader = CaptureReader(capture_dir, reuse_decoded=True)  # frames built in order decode their t-1 images once
-    if int(frame) not in reader.frames:
-        raise DatasetError(f"{reader.root / 'capture.json'}: frame {frame} is not listed in field 'frames'")
-    sid = sample_id(frame)
+    frames = [int(f) for f in frames]
+    for frame in frames:
+        if frame not in reader.frames:
+            raise DatasetError(f"{reader.root / 'capture.json'}: frame {frame} is not listed in field 'frames'")
     thr = options.motion_threshold_m
     png = int(options.png_level)
-    written: list[Path] = []
-    pool = concurrent.futures.ThreadPoolExecutor(options.write_threads) if options.write_threads > 0 else None
-    pending: list[concurrent.futures.Future] = []
+    cams = [c for c in FISHEYE_CAMERAS if c in reader.cameras] + [c for c in reader.cameras if c not in FISHEYE_CAMERAS]
+    rows = capture_rig_ground_truth(reader, frames, cams, constants={c: _camera_constants(reader, c) for c in cams},
+                                    backward_flow=options.backward_flow, motion_threshold_m=thr) if cams else [[]] * len(frames)
+    markers = []
+    for frame, results in zip(frames, rows, strict=True):
+        sid = sample_id(frame)
+        written: list[Path] = []
+        pool = concurrent.futures.ThreadPoolExecutor(options.write_threads) if options.write_threads > 0 else None
+        pending: list[concurrent.futures.Future] = []
 
-    def write(fn, *args, **kwargs):
-        if pool is None:
-            written.extend(fn(*args, **kwargs))
-        else:
-            pending.append(pool.submit(fn, *args, **kwargs))
+        def write(fn, *args, written=written, pool=pool, pending=pending, **kwargs):
+            if pool is None:
+                written.extend(fn(*args, **kwargs))
+            else:
+                pending.append(pool.submit(fn, *args, **kwargs))
 
-    try:
-        first = None
-        cams = [c for c in FISHEYE_CAMERAS if c in reader.cameras] + [c for c in reader.cameras if c not in FISHEYE_CAMERAS]
-        results = capture_rig_ground_truth(reader, frame, cams, constants={c: _camera_constants(reader, c) for c in cams},
-                                           backward_flow=options.backward_flow, motion_threshold_m=thr) if cams else []
-        for cam, res in zip(cams, results, strict=True):
-            first = first or res
-            write(write_camera_ground_truth, out, sid, cam, res, motion_threshold_m=thr, png_level=png)
-            if options.backward_flow:
-                write(_write_backward_flow, out, sid, cam, res, png)
-        if options.bev and has_bev(reader):
-            res = capture_bev_ground_truth(reader, frame, rays=_bev_constants(reader),
-                                           backward_flow=options.backward_flow, motion_threshold_m=thr)
-            first = first or res
-            write(write_camera_ground_truth, out, sid, BEV_CAMERA, res, motion_threshold_m=thr, png_level=png)
-            write(write_bev_ground_truth, out, sid, res, png_level=png)
-            if options.backward_flow:
-                write(_write_backward_flow, out, sid, BEV_CAMERA, res, png)
-        if first is None:
-            raise DatasetError(f"{reader.root / 'capture.json'}: no camera to build (field 'cameras' is empty)")
-        write(write_sample_ground_truth, out, sid, first, motion_threshold_m=thr)
-        write(_sample_extras, reader, frame, out, sid)
-        for f in pending:
-            written.extend(f.result())
-    finally:
-        if pool is not None:
+        try:
+            first = None
+            for cam, res in zip(cams, results, strict=True):
+                first = first or res
+                write(write_camera_ground_truth, out, sid, cam, res, motion_threshold_m=thr, png_level=png)
+                if options.backward_flow:
+                    write(_write_backward_flow, out, sid, cam, res, png)
+            if options.bev and has_bev(reader):
+                res = capture_bev_ground_truth(reader, frame, rays=_bev_constants(reader),
+                                               backward_flow=options.backward_flow, motion_threshold_m=thr)
+                first = first or res
+                write(write_camera_ground_truth, out, sid, BEV_CAMERA, res, motion_threshold_m=thr, png_level=png)
+                write(write_bev_ground_truth, out, sid, res, png_level=png)
+                if options.backward_flow:
+                    write(_write_backward_flow, out, sid, BEV_CAMERA, res, png)
+            if first is None:
+                raise DatasetError(f"{reader.root / 'capture.json'}: no camera to build (field 'cameras' is empty)")
+            write(write_sample_ground_truth, out, sid, first, motion_threshold_m=thr)
+            write(_sample_extras, reader, frame, out, sid)
             for f in pending:
-                f.cancel()
-            pool.shutdown(wait=True)
-    files = {p.relative_to(out).as_posix(): _sha256(p) for p in sorted(set(written))}
-    marker = {"sample": sid, "frame": int(frame), "layout_version": LAYOUT_VERSION, "files": dict(sorted(files.items()))}
-    atomic_write_text(out / DONE_DIR / f"{sid}.json", json.dumps(marker, indent=1) + "\n")
-    return marker
+                written.extend(f.result())
+        finally:
+            if pool is not None:
+                for f in pending:
+                    f.cancel()
+                pool.shutdown(wait=True)
+        files = {p.relative_to(out).as_posix(): _sha256(p) for p in sorted(set(written))}
+        marker = {"sample": sid, "frame": frame, "layout_version": LAYOUT_VERSION, "files": dict(sorted(files.items()))}
+        atomic_write_text(out / DONE_DIR / f"{sid}.json", json.dumps(marker, indent=1) + "\n")
+        markers.append(marker)
+    return markers
 
 
 def _write_backward_flow(root: Path, sid: str, camera: str, result: dict[str, Any], png_level: int) -> list[Path]:
@@ -279,22 +303,48 @@ def _write_backward_flow(root: Path, sid: str, camera: str, result: dict[str, An
             write_flow_color(root / "optical_flow_backward" / "color_coded" / f"{stem}.png", fl, fv, png_level=png_level)]
 
 
+def _prepare_process(options: BuildOptions) -> None:
+    if options.tune_allocator or "MALLOC_TRIM_THRESHOLD_" in os.environ:
+        # In the process that builds (a dask worker or the serial build's). A fixed trim threshold
+        # in the environment (dask's nannies set one) has already turned glibc's dynamic mmap
+        # threshold off, so every large buffer would be mapped afresh: tuning is then a clear win.
+        tune_allocator()
+
+
+def _reason(e: Exception) -> str:
+    reason = f"{type(e).__name__}: {e}"
+    if not isinstance(e, (JaxfishError, OSError, ValueError)):
+        reason += " | " + traceback.format_exc(limit=3).strip().splitlines()[-1]
+    return reason
+
+
 def _sample_task(capture_dir: str, out_dir: str, frame: int, options: BuildOptions) -> tuple[str, str | None]:
     """Run `build_sample`, turning any error into a one-line reason (the dask / serial task)."""
     sid = sample_id(frame)
     try:
-        if options.tune_allocator or "MALLOC_TRIM_THRESHOLD_" in os.environ:
-            # In the process that builds (a dask worker or the serial build's). A fixed trim threshold
-            # in the environment (dask's nannies set one) has already turned glibc's dynamic mmap
-            # threshold off, so every large buffer would be mapped afresh: tuning is then a clear win.
-            tune_allocator()
+        _prepare_process(options)
         build_sample(capture_dir, out_dir, frame, options)
         return sid, None
     except Exception as e:  # a failing sample is reported, never stops the others
-        reason = f"{type(e).__name__}: {e}"
-        if not isinstance(e, (JaxfishError, OSError, ValueError)):
-            reason += " | " + traceback.format_exc(limit=3).strip().splitlines()[-1]
-        return sid, reason
+        return sid, _reason(e)
+
+
+def _batch_task(capture_dir: str, out_dir: str, frames: list[int], options: BuildOptions) -> list[tuple[str, str | None]]:
+    """`build_samples` of a batch of frames; when it fails, each frame not yet complete is built on
+    its own, so that a failing sample is reported with its own reason and the others complete."""
+    if len(frames) == 1:
+        return [_sample_task(capture_dir, out_dir, frames[0], options)]
+    try:
+        _prepare_process(options)
+        build_samples(capture_dir, out_dir, frames, options)
+        return [(sample_id(f), None) for f in frames]
+    except Exception:  # a failing sample is reported, never stops the others
+        return [(sample_id(f), None) if is_complete(out_dir, sample_id(f)) else _sample_task(capture_dir, out_dir, f, options)
+                for f in frames]
+
+
+def _batches(frames: list[int], size: int) -> list[list[int]]:
+    return [frames[i:i + size] for i in range(0, len(frames), max(1, int(size)))]
 
 
 # --------------------------------------------------------------------------------------- the build
@@ -385,8 +435,9 @@ def build_dataset(
     if todo and (scheduler is not None or workers is not None):  # absolute paths: workers may run elsewhere
         _run_dask(str(reader.root.resolve()), str(out.resolve()), todo, options, scheduler, workers, processes, record)
     else:
-        for f in todo:
-            record(*_sample_task(str(reader.root), str(out), f, options))
+        for frames_ in _batches(todo, options.batch_frames):
+            for result in _batch_task(str(reader.root), str(out), frames_, options):
+                record(*result)
     from ._manifest import write_dataset_files
 
     write_dataset_files(reader, out, options)
@@ -408,14 +459,16 @@ def _run_dask(capture_dir: str, out_dir: str, frames: list[int], options: BuildO
         cluster = local_cluster(int(workers or 1), processes=processes)
         client = Client(cluster)
     try:
-        futures = [client.submit(_sample_task, capture_dir, out_dir, f, options, key=f"jaxfish-sample-{sample_id(f)}",
-                                 pure=False) for f in frames]
+        batches = {f"jaxfish-samples-{sample_id(b[0])}-{sample_id(b[-1])}": b for b in _batches(frames, options.batch_frames)}
+        futures = [client.submit(_batch_task, capture_dir, out_dir, b, options, key=key, pure=False)
+                   for key, b in batches.items()]
         for fut in as_completed(futures):
             try:
-                sid, err = fut.result()
+                results = fut.result()
             except Exception as e:  # the worker itself died
-                sid, err = str(fut.key).removeprefix("jaxfish-sample-"), f"worker failure: {type(e).__name__}: {e}"
-            record(sid, err)
+                results = [(sample_id(f), f"worker failure: {type(e).__name__}: {e}") for f in batches[str(fut.key)]]
+            for sid, err in results:
+                record(sid, err)
     finally:
         client.close()
         if cluster is not None:

@@ -310,17 +310,17 @@ def box_slots(num_actors: int) -> int:
     return max(q, -(-int(num_actors) // q) * q)
 
 
-def _frame_motion(reader, frame: int):
+def _frame_motion(reader, frame: int, pad: int | None = None):
     """``(actors, boxes at t-1, boxes at t, vehicle -> world at t-1, at t)`` of a capture frame (the
-    boxes padded to `box_slots`); a malformed ``actors.json`` / ``ego.json`` raises `CaptureError`
-    naming the frame."""
+    boxes padded to ``pad`` slots, default `box_slots`); a malformed ``actors.json`` / ``ego.json``
+    raises `CaptureError` naming the frame."""
     from .. import groundtruth as gt
     from ._capture import CaptureError
 
     actors = reader.actors(frame)  # names the frame when it is missing
     ego = reader.ego(frame)
     try:
-        pad = box_slots(len(actors))
+        pad = box_slots(len(actors)) if pad is None else int(pad)
         boxes_prev = gt.boxes_from_actors(actors, "t-1", pad_to=pad)
         boxes = gt.boxes_from_actors(actors, "t", pad_to=pad)
         v2w_p = gt.vehicle_to_world_from_carla(np.asarray(ego["transform_prev"]["location"], np.float32),
@@ -369,19 +369,25 @@ def camera_events(reader, frame: int, camera: str, event_map) -> np.ndarray:
                            cat["x"], cat["y"], cat["t"], cat["pol"], fanout=np.asarray(event_map.fanout))
 
 
-def capture_rig_ground_truth(reader, frame: int, cameras: Sequence[str] | None = None, *, constants=None,
-                             backward_flow: bool = False, carla_version: str | None = None,
-                             batch: str = "auto", **options: Any) -> list[dict[str, Any]]:
+def capture_rig_ground_truth(reader, frame: int | Sequence[int], cameras: Sequence[str] | None = None, *,
+                             constants=None, backward_flow: bool = False, carla_version: str | None = None,
+                             batch: str = "auto", **options: Any) -> list:
     """`capture_ground_truth` for several fisheye cameras of a capture frame at once (default: all
     of them, in `CaptureReader.cameras` order), through `jaxfish.groundtruth.rig_ground_truth`:
     the faces of every camera are decoded in one pool of threads, and ``batch`` chooses how the
     cameras are mapped (``"auto"``: a loop of per-camera programs on CPU, `jax.vmap` elsewhere).
 
+    ``frame`` may also be a sequence of frames: they are computed together (one
+    `rig_ground_truth` call with a sample axis, their boxes padded to one `box_slots` size) and the
+    result is one list per frame. On CPU (loop mode) each frame's values are those of a call with
+    that frame alone; with ``batch="vmap"`` they agree to float32 rounding.
+
     ``constants`` ``{camera: (lut, rays, event_map)}``: the per-calibration constants (those
     missing or None are built here). Returns one `capture_ground_truth` result dict per camera, in
-    order."""
+    order (a list of such lists for a sequence of frames)."""
     import concurrent.futures
 
+    import jax
     import jax.numpy as jnp
 
     from .. import groundtruth as gt
@@ -389,6 +395,10 @@ def capture_rig_ground_truth(reader, frame: int, cameras: Sequence[str] | None =
     from ..transforms import Pose
     from ._capture import CaptureError
 
+    single = isinstance(frame, (int, np.integer))
+    frames = [int(frame)] if single else [int(f) for f in frame]
+    if not frames:
+        raise CaptureError(f"{reader.root}: no frame to compute (an empty sequence of frames)")
     rig = reader.rig()
     names = list(reader.cameras if cameras is None else cameras)
     if not names:
@@ -401,26 +411,30 @@ def capture_rig_ground_truth(reader, frame: int, cameras: Sequence[str] | None =
     given, constants = constants or {}, {}
     for c, cam in zip(names, cams, strict=True):
         lut, rays, emap = given.get(c) or (None, None, None)
-        constants[c] = fisheye_constants(reader, c, cam, frame=frame, lut=lut, rays=rays, event_map=emap)
-    actors, boxes_prev, boxes, v2w_p, v2w = _frame_motion(reader, frame)
+        constants[c] = fisheye_constants(reader, c, cam, frame=frames[0], lut=lut, rays=rays, event_map=emap)
+    pad = box_slots(max(len(reader.actors(f)) for f in frames))  # one box size for the whole batch
+    motions = [_frame_motion(reader, f, pad) for f in frames]
     version = _carla_version(reader, carla_version)
-    jobs = [(c, inst, f) for inst in ("prev", "curr") for c in names for f in reader.faces]
+    jobs = [(f, c, inst, face) for f in frames for inst in ("prev", "curr") for c in names for face in reader.faces]
     # PNG decoding releases the GIL: every face of every camera in one pool of threads.
     with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs), os.cpu_count() or 1))) as pool:
-        imgs = dict(zip(jobs, pool.map(lambda j: reader.face(frame, j[0], j[2], j[1], actor_ids=False), jobs),
+        imgs = dict(zip(jobs, pool.map(lambda j: reader.face(j[0], j[1], j[3], j[2], actor_ids=False), jobs),
                         strict=True))
-    stacked = {inst: CameraImages(*(np.stack([np.stack([getattr(imgs[(c, inst, f)], k) for f in reader.faces])
-                                              for c in names]) for k in ("rgb", "depth_m", "semantic")), None)
+    stacked = {inst: CameraImages(*(np.stack([np.stack([np.stack([getattr(imgs[(f, c, inst, face)], k) for face in reader.faces])
+                                                        for c in names]) for f in frames])
+                                    for k in ("rgb", "depth_m", "semantic")), None)
                for inst in ("prev", "curr")}
     c2v = Pose(np.stack([np.asarray(cal.camera_to_vehicle.rotation_matrix, np.float32) for cal in calibs]),
                np.stack([np.asarray(cal.camera_to_vehicle.translation, np.float32) for cal in calibs]))
-    truths = gt.rig_ground_truth([constants[c][0] for c in names], cams, c2v, stacked["prev"], stacked["curr"],
-                                 boxes_prev, boxes, v2w_p, v2w, rays=[constants[c][1] for c in names],
-                                 backward_flow=backward_flow, carla_version=version, batch=batch, stacked=False,
-                                 **options)
-    return [{"truth": truth, "boxes_prev": boxes_prev, "boxes": boxes, "vehicle_to_world_prev": v2w_p,
-             "vehicle_to_world": v2w, "events": camera_events(reader, frame, c, constants[c][2]), "camera": cam,
-             "rays": constants[c][1], "actors": actors} for c, cam, truth in zip(names, cams, truths, strict=True)]
+    per_sample = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *[m[1:] for m in motions])
+    rows = gt.rig_ground_truth([constants[c][0] for c in names], cams, c2v, stacked["prev"], stacked["curr"],
+                               *per_sample, rays=[constants[c][1] for c in names], backward_flow=backward_flow,
+                               carla_version=version, batch=batch, stacked=False, **options)
+    out = [[{"truth": truth, "boxes_prev": bp, "boxes": bc, "vehicle_to_world_prev": vp, "vehicle_to_world": vc,
+             "events": camera_events(reader, f, c, constants[c][2]), "camera": cam, "rays": constants[c][1],
+             "actors": actors} for c, cam, truth in zip(names, cams, row, strict=True)]
+           for f, (actors, bp, bc, vp, vc), row in zip(frames, motions, rows, strict=True)]
+    return out[0] if single else out
 
 
 def compiled_pixel_rays(camera):

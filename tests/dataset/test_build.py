@@ -291,3 +291,26 @@ def test_local_cluster_workers_keep_glibcs_dynamic_mmap_threshold():
         (env,) = client.run(_worker_environ).values()
     assert env["MALLOC_TRIM_THRESHOLD_"] is None  # dask's nannies would set 65536
     assert env["OMP_NUM_THREADS"] == "1"  # the rest of dask's worker environment is kept
+
+
+def test_batched_frames_build_equals_the_serial_build_and_isolates_failures(small_capture, reference_build, tmp_path):
+    """``batch_frames=2``: both samples' ground truth in one `rig_ground_truth` call (serial, and as
+    one dask task): the bytes of the per-sample build; a corrupt file fails its own sample only."""
+    from jaxfish.dataset import BuildOptions, DatasetError
+
+    opts = BuildOptions(batch_frames=2)
+    report = build_dataset(small_capture, tmp_path / "batched", options=opts)
+    assert report.ok and sorted(report.built) == list(SAMPLES)
+    _assert_same_tree(reference_build[0], tmp_path / "batched")
+    pytest.importorskip("distributed")
+    report = build_dataset(small_capture, tmp_path / "batched_dask", options=opts, workers=1, processes=False)
+    assert report.ok and sorted(report.built) == list(SAMPLES)
+    _assert_same_tree(reference_build[0], tmp_path / "batched_dask")
+
+    corrupt = _copy(small_capture, tmp_path, "corrupt")
+    (corrupt / "frames/000001/cameras/RV/left/rgb_curr.png").write_bytes(b"\x89PNG not really")
+    report = build_dataset(corrupt, tmp_path / "out_corrupt", options=opts)
+    assert report.built == ["00000"] and list(report.failed) == ["00001"]
+    assert "rgb_curr.png" in report.failed["00001"] and "RV" in report.failed["00001"]
+    with pytest.raises(DatasetError, match="batch_frames"):
+        BuildOptions(batch_frames=0)
