@@ -225,15 +225,7 @@ def build_samples(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fr
     with an accelerator (`jax.vmap` over the batch) values agree to float32 rounding. Each sample's
     files and marker are written as soon as its ground truth is done; the first error raises
     (samples already marked complete stay complete). Returns the markers, in order."""
-    from ..io import (
-        CaptureReader,
-        atomic_write_text,
-        capture_bev_ground_truth,
-        capture_rig_ground_truth,
-        write_bev_ground_truth,
-        write_camera_ground_truth,
-        write_sample_ground_truth,
-    )
+    from ..io import CaptureReader, capture_rig_ground_truth
 
     options = options or BuildOptions()
     out = Path(out_dir)
@@ -242,55 +234,69 @@ def build_samples(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fr
     for frame in frames:
         if frame not in reader.frames:
             raise DatasetError(f"{reader.root / 'capture.json'}: frame {frame} is not listed in field 'frames'")
+    cams = [c for c in FISHEYE_CAMERAS if c in reader.cameras] + [c for c in reader.cameras if c not in FISHEYE_CAMERAS]
+    rows = [[]] * len(frames)
+    if cams:
+        rows = capture_rig_ground_truth(reader, frames, cams, constants={c: _camera_constants(reader, c) for c in cams},
+                                        backward_flow=options.backward_flow, motion_threshold_m=options.motion_threshold_m)
+    return [_write_sample(reader, out, frame, cams, results, options) for frame, results in zip(frames, rows, strict=True)]
+
+
+def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[dict[str, Any]],
+                  options: BuildOptions) -> dict[str, Any]:
+    """Write one sample's files (the fisheye ``results`` computed, the BEV computed here while the
+    fisheye files are written by the pool), then its marker; returns the marker."""
+    from ..io import (
+        atomic_write_text,
+        capture_bev_ground_truth,
+        write_bev_ground_truth,
+        write_camera_ground_truth,
+        write_sample_ground_truth,
+    )
+
+    sid = sample_id(frame)
     thr = options.motion_threshold_m
     png = int(options.png_level)
-    cams = [c for c in FISHEYE_CAMERAS if c in reader.cameras] + [c for c in reader.cameras if c not in FISHEYE_CAMERAS]
-    rows = capture_rig_ground_truth(reader, frames, cams, constants={c: _camera_constants(reader, c) for c in cams},
-                                    backward_flow=options.backward_flow, motion_threshold_m=thr) if cams else [[]] * len(frames)
-    markers = []
-    for frame, results in zip(frames, rows, strict=True):
-        sid = sample_id(frame)
-        written: list[Path] = []
-        pool = concurrent.futures.ThreadPoolExecutor(options.write_threads) if options.write_threads > 0 else None
-        pending: list[concurrent.futures.Future] = []
+    written: list[Path] = []
+    pool = concurrent.futures.ThreadPoolExecutor(options.write_threads) if options.write_threads > 0 else None
+    pending: list[concurrent.futures.Future] = []
 
-        def write(fn, *args, written=written, pool=pool, pending=pending, **kwargs):
-            if pool is None:
-                written.extend(fn(*args, **kwargs))
-            else:
-                pending.append(pool.submit(fn, *args, **kwargs))
+    def write(fn, *args, **kwargs):
+        if pool is None:
+            written.extend(fn(*args, **kwargs))
+        else:
+            pending.append(pool.submit(fn, *args, **kwargs))
 
-        try:
-            first = None
-            for cam, res in zip(cams, results, strict=True):
-                first = first or res
-                write(write_camera_ground_truth, out, sid, cam, res, motion_threshold_m=thr, png_level=png)
-                if options.backward_flow:
-                    write(_write_backward_flow, out, sid, cam, res, png)
-            if options.bev and has_bev(reader):
-                res = capture_bev_ground_truth(reader, frame, rays=_bev_constants(reader),
-                                               backward_flow=options.backward_flow, motion_threshold_m=thr)
-                first = first or res
-                write(write_camera_ground_truth, out, sid, BEV_CAMERA, res, motion_threshold_m=thr, png_level=png)
-                write(write_bev_ground_truth, out, sid, res, png_level=png)
-                if options.backward_flow:
-                    write(_write_backward_flow, out, sid, BEV_CAMERA, res, png)
-            if first is None:
-                raise DatasetError(f"{reader.root / 'capture.json'}: no camera to build (field 'cameras' is empty)")
-            write(write_sample_ground_truth, out, sid, first, motion_threshold_m=thr)
-            write(_sample_extras, reader, frame, out, sid)
+    try:
+        first = None
+        for cam, res in zip(cams, results, strict=True):
+            first = first or res
+            write(write_camera_ground_truth, out, sid, cam, res, motion_threshold_m=thr, png_level=png)
+            if options.backward_flow:
+                write(_write_backward_flow, out, sid, cam, res, png)
+        if options.bev and has_bev(reader):
+            res = capture_bev_ground_truth(reader, frame, rays=_bev_constants(reader),
+                                           backward_flow=options.backward_flow, motion_threshold_m=thr)
+            first = first or res
+            write(write_camera_ground_truth, out, sid, BEV_CAMERA, res, motion_threshold_m=thr, png_level=png)
+            write(write_bev_ground_truth, out, sid, res, png_level=png)
+            if options.backward_flow:
+                write(_write_backward_flow, out, sid, BEV_CAMERA, res, png)
+        if first is None:
+            raise DatasetError(f"{reader.root / 'capture.json'}: no camera to build (field 'cameras' is empty)")
+        write(write_sample_ground_truth, out, sid, first, motion_threshold_m=thr)
+        write(_sample_extras, reader, frame, out, sid)
+        for f in pending:
+            written.extend(f.result())
+    finally:
+        if pool is not None:
             for f in pending:
-                written.extend(f.result())
-        finally:
-            if pool is not None:
-                for f in pending:
-                    f.cancel()
-                pool.shutdown(wait=True)
-        files = {p.relative_to(out).as_posix(): _sha256(p) for p in sorted(set(written))}
-        marker = {"sample": sid, "frame": frame, "layout_version": LAYOUT_VERSION, "files": dict(sorted(files.items()))}
-        atomic_write_text(out / DONE_DIR / f"{sid}.json", json.dumps(marker, indent=1) + "\n")
-        markers.append(marker)
-    return markers
+                f.cancel()
+            pool.shutdown(wait=True)
+    files = {p.relative_to(out).as_posix(): _sha256(p) for p in sorted(set(written))}
+    marker = {"sample": sid, "frame": frame, "layout_version": LAYOUT_VERSION, "files": dict(sorted(files.items()))}
+    atomic_write_text(out / DONE_DIR / f"{sid}.json", json.dumps(marker, indent=1) + "\n")
+    return marker
 
 
 def _write_backward_flow(root: Path, sid: str, camera: str, result: dict[str, Any], png_level: int) -> list[Path]:

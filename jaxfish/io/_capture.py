@@ -324,7 +324,7 @@ class CaptureReader:
 
     def __init__(self, root: str | os.PathLike, *, reuse_decoded: bool = False):
         self.root = Path(root)
-        self.reuse_decoded = bool(reuse_decoded)
+        self._reuse_key = (str(self.root.resolve()),) if reuse_decoded else None  # the capture, once
         header = self.root / "capture.json"
         if not header.is_file():
             raise CaptureError(f"{header}: not a capture directory (capture.json missing)")
@@ -385,7 +385,7 @@ class CaptureReader:
 
     def face(self, frame: int, camera: str, face: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """One cube face's images at ``"prev"`` (t-1) or ``"curr"`` (t) (``actor_ids``: see `read_images`)."""
-        reuse = (str(self.root.resolve()), camera, face) if self.reuse_decoded else None
+        reuse = None if self._reuse_key is None else self._reuse_key + (camera, face)
         return read_images(self._frame(frame) / "cameras" / camera / face, instant, actor_ids=actor_ids, reuse=reuse)
 
     def faces_stack(self, frame: int, camera: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
@@ -403,7 +403,7 @@ class CaptureReader:
 
     def view(self, frame: int, name: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """The ``"bev"`` or ``"front"`` camera's images (``actor_ids``: see `read_images`)."""
-        reuse = (str(self.root.resolve()), name) if self.reuse_decoded else None
+        reuse = None if self._reuse_key is None else self._reuse_key + (name,)
         return read_images(self._frame(frame) / name, instant, actor_ids=actor_ids, reuse=reuse)
 
     def height(self, frame: int, name: str = "bev") -> np.ndarray:

@@ -310,14 +310,15 @@ def box_slots(num_actors: int) -> int:
     return max(q, -(-int(num_actors) // q) * q)
 
 
-def _frame_motion(reader, frame: int, pad: int | None = None):
+def _frame_motion(reader, frame: int, pad: int | None = None, actors: list | None = None):
     """``(actors, boxes at t-1, boxes at t, vehicle -> world at t-1, at t)`` of a capture frame (the
-    boxes padded to ``pad`` slots, default `box_slots`); a malformed ``actors.json`` / ``ego.json``
-    raises `CaptureError` naming the frame."""
+    boxes padded to ``pad`` slots, default `box_slots`; ``actors``: the frame's ``actors.json``
+    records when already read); a malformed ``actors.json`` / ``ego.json`` raises `CaptureError`
+    naming the frame."""
     from .. import groundtruth as gt
     from ._capture import CaptureError
 
-    actors = reader.actors(frame)  # names the frame when it is missing
+    actors = reader.actors(frame) if actors is None else actors  # names the frame when it is missing
     ego = reader.ego(frame)
     try:
         pad = box_slots(len(actors)) if pad is None else int(pad)
@@ -412,17 +413,20 @@ def capture_rig_ground_truth(reader, frame: int | Sequence[int], cameras: Sequen
     for c, cam in zip(names, cams, strict=True):
         lut, rays, emap = given.get(c) or (None, None, None)
         constants[c] = fisheye_constants(reader, c, cam, frame=frames[0], lut=lut, rays=rays, event_map=emap)
-    pad = box_slots(max(len(reader.actors(f)) for f in frames))  # one box size for the whole batch
-    motions = [_frame_motion(reader, f, pad) for f in frames]
+    records = [reader.actors(f) for f in frames]
+    pad = box_slots(max(len(r) for r in records))  # one box size for the whole batch
+    motions = [_frame_motion(reader, f, pad, r) for f, r in zip(frames, records, strict=True)]
     version = _carla_version(reader, carla_version)
     jobs = [(f, c, inst, face) for f in frames for inst in ("prev", "curr") for c in names for face in reader.faces]
     # PNG decoding releases the GIL: every face of every camera in one pool of threads.
     with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs), os.cpu_count() or 1))) as pool:
         imgs = dict(zip(jobs, pool.map(lambda j: reader.face(j[0], j[1], j[3], j[2], actor_ids=False), jobs),
                         strict=True))
-    stacked = {inst: CameraImages(*(np.stack([np.stack([np.stack([getattr(imgs[(f, c, inst, face)], k) for face in reader.faces])
-                                                        for c in names]) for f in frames])
-                                    for k in ("rgb", "depth_m", "semantic")), None)
+    def stack(inst: str, k: str) -> np.ndarray:  # one copy into an (N, C, F, S, S[, 3]) array
+        parts = [getattr(imgs[(f, c, inst, face)], k) for f in frames for c in names for face in reader.faces]
+        return np.stack(parts).reshape((len(frames), len(names), len(reader.faces)) + parts[0].shape)
+
+    stacked = {inst: CameraImages(*(stack(inst, k) for k in ("rgb", "depth_m", "semantic")), None)
                for inst in ("prev", "curr")}
     c2v = Pose(np.stack([np.asarray(cal.camera_to_vehicle.rotation_matrix, np.float32) for cal in calibs]),
                np.stack([np.asarray(cal.camera_to_vehicle.translation, np.float32) for cal in calibs]))
