@@ -9,11 +9,24 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+def _process_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+FILE_MODE = 0o666 & ~_process_umask()
+"""Permission bits of every file written here: what ``open(path, "w")`` would give (0o666 minus
+the umask, read once at import). `tempfile.mkstemp` creates its file 0o600, which would leave a
+shared dataset unreadable to other users."""
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, *, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is renamed onto ``path``
-    (``os.replace``, atomic on POSIX), on error it is removed. The temporary name keeps the
-    destination's extension (or ``suffix``) so writers that dispatch on it work."""
+    (``os.replace``, atomic on POSIX) with the permissions of a plain ``open`` (`FILE_MODE`), on
+    error it is removed. The temporary name keeps the destination's extension (or ``suffix``) so
+    writers that dispatch on it work."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = path.suffix if suffix is None else suffix
@@ -22,6 +35,7 @@ def atomic_path(path: str | os.PathLike, *, suffix: str | None = None) -> Iterat
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        os.chmod(tmp_path, FILE_MODE)
         os.replace(tmp_path, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

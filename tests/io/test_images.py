@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import stat
+
 import numpy as np
 import pytest
 
@@ -87,6 +90,15 @@ def test_write_replaces_atomically(tmp_path):
     write_image(p, np.full((3, 3), 9, np.uint8))
     assert read_image(p).max() == 9
     assert sorted(x.name for x in tmp_path.iterdir()) == ["x.png"]
+
+
+def test_written_files_get_the_umask_permissions_not_the_temporary_files(tmp_path):
+    from jaxfish.io._atomic import FILE_MODE, atomic_write_text
+
+    mask = os.umask(0)
+    os.umask(mask)
+    for p in (write_image(tmp_path / "x.png", np.zeros((2, 2), np.uint8)), atomic_write_text(tmp_path / "x.json", "{}")):
+        assert stat.S_IMODE(p.stat().st_mode) == FILE_MODE == 0o666 & ~mask  # mkstemp alone gives 0o600
 
 
 @pytest.mark.parametrize("ext", [".png", ".exr"])
