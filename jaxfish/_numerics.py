@@ -82,8 +82,8 @@ def stack_last(arrays: list[Array]) -> Array:
     return jnp.moveaxis(jnp.stack(arrays, axis=0), 0, -1)
 
 
-#: Cephes ``atanf`` coefficients: ``atan(t) = t + t s P(s)``, ``s = t²``, for ``|t| <= tan(pi / 8)``.
 _ATANF = (8.05374449538e-2, -1.38776856032e-1, 1.99777106478e-1, -3.33329491539e-1)
+"""Cephes ``atanf`` coefficients: ``atan(t) = t + t s P(s)``, ``s = t²``, for ``|t| <= tan(pi / 8)``."""
 
 
 def arctan_unit(a: Float[Array, "*batch"]) -> Float[Array, "*batch"]:

@@ -19,14 +19,14 @@ from ..transforms import Pose
 from ._cameras import rig_rays, stack_cameras, stack_poses
 from ._grid import OCCUPANCY_MIN_HEIGHT_M, _check_down
 
-#: Heights are stored in the fusion z-buffer in steps of this many metres (1 mm).
 HEIGHT_QUANTUM_M = 1e-3
-#: Lowest height the fusion keeps (metres, vehicle frame); lower points are clipped to it.
+"""Heights are stored in the fusion z-buffer in steps of this many metres (1 mm)."""
 MIN_HEIGHT_M = -100.0
-#: Class ids must be below this to be fused (the z-buffer packs the class in the low bits).
+"""Lowest height the fusion keeps (metres, vehicle frame); lower points are clipped to it."""
 MAX_CLASSES = 64
-#: Label of a BEV cell no point landed in (fusion) or no camera sees (IPM).
+"""Class ids must be below this to be fused (the z-buffer packs the class in the low bits)."""
 UNOBSERVED = -1
+"""Label of a BEV cell no point landed in (fusion) or no camera sees (IPM)."""
 
 _F32 = jnp.float32
 _Q0 = round(-MIN_HEIGHT_M / HEIGHT_QUANTUM_M)  # z-buffer level of height 0

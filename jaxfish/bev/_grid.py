@@ -18,15 +18,15 @@ from ..cameras import Orthographic
 from ..groundtruth import FAR_RANGE_M, apply_pose
 from ..transforms import Pose
 
-#: A BEV cell is occupied when its top surface is more than this many metres above the ground:
-#: curbs (~0.15 m) and speed bumps (~0.1 m) are traversable, cars, people, poles and walls are not.
 OCCUPANCY_MIN_HEIGHT_M = 0.2
-#: Height range (metres) of the colour rendering of height maps (`colorize_height`).
+"""A BEV cell is occupied when its top surface is more than this many metres above the ground:
+curbs (~0.15 m) and speed bumps (~0.1 m) are traversable, cars, people, poles and walls are not."""
 HEIGHT_COLOR_RANGE_M = (0.0, 4.0)
+"""Height range (metres) of the colour rendering of height maps (`colorize_height`)."""
 
-#: A BEV camera counts as looking straight down when its optical axis (camera +z, in the vehicle
-#: frame) has a component along vehicle -z above this (within ~2.6 degrees of the vertical).
 _DOWN_MIN_COSINE = 1.0 - 1e-3
+"""A BEV camera counts as looking straight down when its optical axis (camera +z, in the vehicle
+frame) has a component along vehicle -z above this (within ~2.6 degrees of the vertical)."""
 
 _F32 = jnp.float32
 

@@ -10,18 +10,18 @@ from .._numerics import resolve_dtype
 from ..cameras import AbstractCamera, WoodScapeFisheye
 from ..transforms import Pose
 
-#: The four surround-view cameras of WoodScape/SynWoodScape: front, mirror-left, mirror-right, rear.
 CAMERA_NAMES: tuple[str, ...] = ("FV", "MVL", "MVR", "RV")
+"""The four surround-view cameras of WoodScape/SynWoodScape: front, mirror-left, mirror-right, rear."""
 
-#: Corrected camera translations of SynWoodScape in the **CARLA** frame (x forward, y right, z up,
-#: metres, origin at the CARLA ego actor), from the dataset author (valeoai/WoodScape issue #113).
-#: The published MVL/MVR translations are wrong; FV and RV are unchanged.
 SYNWOODSCAPE_CORRECTED_TRANSLATIONS_CARLA: dict[str, tuple[float, float, float]] = {
     "FV": (1.92, 0.0, 0.9),
     "RV": (-1.92, 0.0, 0.9),
     "MVR": (0.8, 0.9, 1.0),
     "MVL": (0.8, -0.9, 1.0),
 }
+"""Corrected camera translations of SynWoodScape in the **CARLA** frame (x forward, y right, z up,
+metres, origin at the CARLA ego actor), from the dataset author (valeoai/WoodScape issue #113).
+The published MVL/MVR translations are wrong; FV and RV are unchanged."""
 
 Flavor = Literal["woodscape", "synwoodscape"]
 

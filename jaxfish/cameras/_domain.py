@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-#: Grid and bisection steps used to locate the first stationary point on [0, pi].
 _GRID = 2048
+"""Grid and bisection steps used to locate the first stationary point on [0, pi]."""
 _BISECTIONS = 60
 
 

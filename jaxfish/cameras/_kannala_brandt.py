@@ -15,9 +15,9 @@ from .._numerics import eps_for, float_dtype, incidence_angle, resolve_dtype, sa
 from ._base import AbstractCamera, as_coordinates, check_image_size
 from ._domain import first_increasing_limit
 
-#: When theta_d(theta) has a stationary point theta_s <= pi, the valid domain is
-#: [0, theta_s - margin] (same rule as `WoodScapeFisheye`).
 KB_THETA_MAX_MARGIN_RAD = 1e-3
+"""When theta_d(theta) has a stationary point theta_s <= pi, the valid domain is
+[0, theta_s - margin] (same rule as `WoodScapeFisheye`)."""
 _MAX_NEWTON_STEPS = 32
 _GUESS_STEPS = 3
 

@@ -14,11 +14,11 @@ from .._numerics import eps_for, float_dtype, incidence_angle, resolve_dtype, sa
 from ._base import AbstractCamera, as_coordinates, check_image_size
 from ._domain import first_increasing_limit
 
-#: When rho(theta) has a stationary point theta_s <= pi, the valid domain is [0, theta_s - margin]:
-#: at theta_s itself the inverse has infinite slope and is not a usable ray.
 THETA_MAX_MARGIN_RAD = 1e-3
-#: Newton iterations at most when inverting rho (4-6 are used on real calibrations).
+"""When rho(theta) has a stationary point theta_s <= pi, the valid domain is [0, theta_s - margin]:
+at theta_s itself the inverse has infinite slope and is not a usable ray."""
 _MAX_NEWTON_STEPS = 32
+"""Newton iterations at most when inverting rho (4-6 are used on real calibrations)."""
 
 
 def _newton_tolerances(dtype) -> tuple[float, float]:
@@ -58,8 +58,8 @@ def _theta_residual(theta, args):
     return (rho_of_theta(k, theta) - rho) / k[0]
 
 
-#: Plain Newton steps fused into one elementwise pass that give optimistix its starting point.
 _GUESS_STEPS = 3
+"""Plain Newton steps fused into one elementwise pass that give optimistix its starting point."""
 
 
 def _initial_guess(k: Float[Array, "4"], rho: Float[Array, "*batch"], theta_max: Float[Array, ""]) -> Float[Array, "*batch"]:

@@ -30,8 +30,8 @@ from .._errors import JaxfishError
 from ._layout import BEV_CAMERA, FISHEYE_CAMERAS, LAYOUT_VERSION, sample_id
 from ._runtime import tune_allocator
 
-#: Folder of the per-sample completion markers.
 DONE_DIR = ".done"
+"""Folder of the per-sample completion markers."""
 
 
 class DatasetError(JaxfishError):

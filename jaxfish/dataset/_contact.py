@@ -17,7 +17,6 @@ import numpy as np
 
 from ._layout import BEV_CAMERA
 
-#: Contact-sheet rows: (label, dataset file pattern with ``{sample}`` and ``{camera}``).
 CONTACT_ROWS: tuple[tuple[str, str], ...] = (
     ("RGB t-1", "previous_images/{sample}_{camera}_prev.png"),
     ("RGB t", "rgb_images/{sample}_{camera}.png"),
@@ -28,11 +27,12 @@ CONTACT_ROWS: tuple[tuple[str, str], ...] = (
     ("flow", "optical_flow/color_coded/{sample}_{camera}.png"),
     ("events", "dvs_signals/color_coded/{sample}_{camera}.png"),
 )
-#: Contact-sheet columns: (label, camera name in file names).
+"""Contact-sheet rows: (label, dataset file pattern with ``{sample}`` and ``{camera}``)."""
 CONTACT_COLUMNS: tuple[tuple[str, str], ...] = (
     ("front (FV)", "FV"), ("rear (RV)", "RV"), ("top view (BEV)", BEV_CAMERA), ("left (MVL)", "MVL"),
     ("right (MVR)", "MVR"),
 )
+"""Contact-sheet columns: (label, camera name in file names)."""
 _GAP = 4
 _LABEL_W = 96
 _LABEL_H = 22

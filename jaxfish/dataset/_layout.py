@@ -9,15 +9,15 @@ from __future__ import annotations
 
 from typing import Any
 
-#: The fisheye cameras in SynWoodScape's order of the release's figure columns: front, rear, left, right.
 FISHEYE_CAMERAS = ("FV", "RV", "MVL", "MVR")
-#: Name of the top-view (bird's-eye view) camera in file names.
+"""The fisheye cameras in SynWoodScape's order of the release's figure columns: front, rear, left, right."""
 BEV_CAMERA = "BEV"
-#: Digits of a sample id: sample ``k`` is the capture's frame ``k`` (``{k:05d}``).
+"""Name of the top-view (bird's-eye view) camera in file names."""
 SAMPLE_DIGITS = 5
-#: Version of this layout (bumped on any change of folder, name, dtype or meaning; 2: depth EXR
-#: added). Completion markers of another version do not count as complete: resuming rebuilds them.
+"""Digits of a sample id: sample ``k`` is the capture's frame ``k`` (``{k:05d}``)."""
 LAYOUT_VERSION = 2
+"""Version of this layout (bumped on any change of folder, name, dtype or meaning; 2: depth EXR
+added). Completion markers of another version do not count as complete: resuming rebuilds them."""
 
 
 def sample_id(frame: int) -> str:
@@ -33,11 +33,6 @@ def _e(key: str, pattern: str, fmt: str, dtype: str, shape: str, unit: str, came
             "cameras": cameras, "description": what, "origin": origin}
 
 
-#: Every per-sample file of a dataset. ``pattern`` uses ``{sample}`` (5-digit id) and ``{camera}``;
-#: ``cameras`` is ``"fisheye"`` (FV, RV, MVL, MVR), ``"all"`` (the fisheyes and BEV), ``"BEV"`` or
-#: ``"sample"`` (one file per sample); ``origin`` is ``"synwoodscape"`` for the released layout
-#: and ``"jaxfish"`` for the extras. Shapes: ``H, W`` of the camera's image, ``N`` events/points,
-#: ``B`` boxes, ``A`` actors.
 LAYOUT: tuple[dict[str, Any], ...] = (
     _e("rgb", "rgb_images/{sample}_{camera}.png", "png", "uint8", "(H, W, 3)", "sRGB-less linear albedo x shading, 0..255",
        "all", "RGB image at t"),
@@ -101,8 +96,12 @@ LAYOUT: tuple[dict[str, Any], ...] = (
     _e("bev_occupancy", "bev_occupancy/{sample}_BEV.png", "png", "uint8", "(H, W)", "0 / 255", "BEV",
        "255 where the top surface is higher than the occupancy threshold", "jaxfish"),
 )
+"""Every per-sample file of a dataset. ``pattern`` uses ``{sample}`` (5-digit id) and ``{camera}``;
+``cameras`` is ``"fisheye"`` (FV, RV, MVL, MVR), ``"all"`` (the fisheyes and BEV), ``"BEV"`` or
+``"sample"`` (one file per sample); ``origin`` is ``"synwoodscape"`` for the released layout
+and ``"jaxfish"`` for the extras. Shapes: ``H, W`` of the camera's image, ``N`` events/points,
+``B`` boxes, ``A`` actors."""
 
-#: Files written once per dataset (not per sample).
 DATASET_FILES: tuple[dict[str, Any], ...] = (
     {"key": "manifest", "pattern": "dataset.json", "format": "json",
      "description": "conventions, class table, BEV scale, frames, corrected extrinsics, layout, samples"},
@@ -115,6 +114,7 @@ DATASET_FILES: tuple[dict[str, Any], ...] = (
     {"key": "done", "pattern": ".done/{sample}.json", "format": "json",
      "description": "completion marker of a sample (written last): its files and their SHA-256"},
 )
+"""Files written once per dataset (not per sample)."""
 
 
 def layout_entries(cameras: str | None = None) -> list[dict[str, Any]]:

@@ -15,8 +15,8 @@ from typing import Any
 from ._build import DONE_DIR, BuildOptions, has_bev
 from ._layout import BEV_CAMERA, DATASET_FILES, FISHEYE_CAMERAS, LAYOUT, LAYOUT_VERSION
 
-#: Format name stored in ``dataset.json``.
 DATASET_FORMAT = "jaxfish-synwoodscape"
+"""Format name stored in ``dataset.json``."""
 
 
 def _complete_samples(out: Path) -> list[str]:

@@ -13,8 +13,8 @@ from ..cameras import AbstractCamera
 from ..transforms import Pose
 from ._boxes3d import Boxes3D
 
-#: Default samples per edge of each box face for the surface boxes (``n x n`` per face).
 SURFACE_SAMPLES = 12
+"""Default samples per edge of each box face for the surface boxes (``n x n`` per face)."""
 
 
 class Boxes2D(eqx.Module):

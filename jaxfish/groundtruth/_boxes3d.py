@@ -13,18 +13,18 @@ from jaxtyping import Array, Bool, Float, Int
 from ..transforms import Pose
 from ._classes import CATEGORY_CLASS, CLASS_PEDESTRIAN, CLASS_TWO_WHEELER
 
-#: Half extents (metres, actor frame x forward, y right, z up) substituted for the zero (or
-#: near-zero, below `DEGENERATE_EXTENT_M`) axes of two-wheeler boxes (CARLA <= 0.9.14 bug).
 TWO_WHEELER_FALLBACK_HALF_EXTENT: tuple[float, float, float] = (1.0, 0.45, 0.85)
-#: An extent below this (metres) is treated as missing.
+"""Half extents (metres, actor frame x forward, y right, z up) substituted for the zero (or
+near-zero, below `DEGENERATE_EXTENT_M`) axes of two-wheeler boxes (CARLA <= 0.9.14 bug)."""
 DEGENERATE_EXTENT_M = 0.05
-#: Padding (metres) added to pedestrian half extents ``(x, y, z)``: CARLA's walker boxes come from
-#: the collision capsule and miss arms, bags and hair.
+"""An extent below this (metres) is treated as missing."""
 PEDESTRIAN_PADDING_M: tuple[float, float, float] = (0.2, 0.2, 0.1)
-#: Sign pattern of the 8 box corners: corner ``k = 4 ix + 2 iy + iz`` has sign ``(-1)^(1 - i)`` on
-#: each box axis, i.e. CARLA's ``BoundingBox.get_local_vertices`` order
-#: ``(---), (--+), (-+-), (-++), (+--), (+-+), (++-), (+++)``.
+"""Padding (metres) added to pedestrian half extents ``(x, y, z)``: CARLA's walker boxes come from
+the collision capsule and miss arms, bags and hair."""
 CORNER_SIGNS: np.ndarray = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+"""Sign pattern of the 8 box corners: corner ``k = 4 ix + 2 iy + iz`` has sign ``(-1)^(1 - i)`` on
+each box axis, i.e. CARLA's ``BoundingBox.get_local_vertices`` order
+``(---), (--+), (-+-), (-++), (+--), (+-+), (++-), (+++)``."""
 
 
 class Boxes3D(eqx.Module):

@@ -18,10 +18,10 @@ from .._numerics import materialize, stack_last
 from ..cameras import AbstractCamera
 from ..transforms import CARLA_TO_ISO, Pose
 
-#: Default relative tolerance of the occlusion test (predicted range vs the target range map).
 OCCLUSION_REL_TOL = 0.03
-#: Far / sky range (metres): CARLA's depth saturation, SynWoodScape's sky value.
+"""Default relative tolerance of the occlusion test (predicted range vs the target range map)."""
 FAR_RANGE_M = 1000.0
+"""Far / sky range (metres): CARLA's depth saturation, SynWoodScape's sky value."""
 
 
 class FlowField(eqx.Module):

@@ -9,9 +9,9 @@ from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
 from .._numerics import arctan2, materialize
 
-#: Hues of the colour wheel: red-yellow 15, yellow-green 6, green-cyan 4, cyan-blue 11,
-#: blue-magenta 13, magenta-red 6 (55 in all).
 WHEEL_SEGMENTS: tuple[int, ...] = (15, 6, 4, 11, 13, 6)
+"""Hues of the colour wheel: red-yellow 15, yellow-green 6, green-cyan 4, cyan-blue 11,
+blue-magenta 13, magenta-red 6 (55 in all)."""
 
 
 def flow_colour_wheel() -> np.ndarray:

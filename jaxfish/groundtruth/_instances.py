@@ -13,16 +13,16 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int, UInt8
 from ._boxes3d import Boxes3D
 from ._classes import CLASS_EGO, CLASS_PEDESTRIAN, CLASS_TWO_WHEELER, CLASS_VEHICLE
 
-#: Default growth of every box (metres) in the inside test: absorbs depth quantisation and the
-#: sub-pixel error of the cube -> fisheye depth resampling.
 BOX_MARGIN_M = 0.05
-#: Default distance (metres) within which an instance pixel in no box goes to the nearest
-#: class-consistent box; farther pixels stay unassigned (actor id 0).
+"""Default growth of every box (metres) in the inside test: absorbs depth quantisation and the
+sub-pixel error of the cube -> fisheye depth resampling."""
 FALLBACK_DISTANCE_M = 0.3
-#: Default tile side (pixels) of the culling grid.
+"""Default distance (metres) within which an instance pixel in no box goes to the nearest
+class-consistent box; farther pixels stay unassigned (actor id 0)."""
 TILE_SIZE = 16
-#: Default motion threshold (metres of displacement between t-1 and t).
+"""Default tile side (pixels) of the culling grid."""
 MOTION_THRESHOLD_M = 0.5
+"""Default motion threshold (metres of displacement between t-1 and t)."""
 
 
 class InstanceMap(eqx.Module):

@@ -20,11 +20,11 @@ from .._errors import ImageError, JaxfishError
 from ._images import PNG_LEVEL, read_image_metadata, write_image
 from ._labels import _carla_version, _frame_motion, compiled_pixel_rays, write_depth_npy
 
-#: Metadata key of the BEV scale/axes JSON in the BEV PNGs written by `write_bev_ground_truth`.
 BEV_METADATA_ATTRIBUTE = "jaxfish:bev"
-#: How a BEV pixel maps to the vehicle frame, in words (also in every BEV PNG's metadata).
+"""Metadata key of the BEV scale/axes JSON in the BEV PNGs written by `write_bev_ground_truth`."""
 BEV_AXES = ("image up = vehicle forward (+x, ISO 8855), image right = vehicle right (-y); "
             "pixel (u, v) sees the ground point [x, y] = pixel_to_vehicle_xy @ [u, v, 1] (metres)")
+"""How a BEV pixel maps to the vehicle frame, in words (also in every BEV PNG's metadata)."""
 
 
 _ROTATION_TOL = 1e-4  # |R^T R - I| and |det R - 1| of a stored rotation (float32 round trips: ~1e-7)

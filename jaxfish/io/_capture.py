@@ -55,11 +55,11 @@ from ._carla import (
 )
 from ._images import read_image, write_image
 
-#: Format name and version stored in ``capture.json``.
 CAPTURE_FORMAT = "jaxfish-capture"
+"""Format name and version stored in ``capture.json``."""
 CAPTURE_VERSION = 1
-#: The two instants of every frame, as file-name suffixes: t-1 and t.
 INSTANTS = ("prev", "curr")
+"""The two instants of every frame, as file-name suffixes: t-1 and t."""
 
 
 class CaptureError(JaxfishError):

@@ -14,10 +14,10 @@ import numpy as np
 
 from .._errors import ImageError
 
-#: CARLA's DVS event dtype (``np.frombuffer(raw, dtype=DVS_EVENT_DTYPE)``); ``t`` is in nanoseconds.
 DVS_EVENT_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("pol", "?")])
-#: Depth that CARLA's 24-bit encoding saturates at (metres): far and sky.
+"""CARLA's DVS event dtype (``np.frombuffer(raw, dtype=DVS_EVENT_DTYPE)``); ``t`` is in nanoseconds."""
 CARLA_MAX_DEPTH_M = 1000.0
+"""Depth that CARLA's 24-bit encoding saturates at (metres): far and sky."""
 _DEPTH_SCALE = 256**3 - 1
 
 

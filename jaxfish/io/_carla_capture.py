@@ -49,26 +49,25 @@ from ._capture import _npy, frame_dir, write_frame
 from ._carla import CARLA_MAX_DEPTH_M, DVS_EVENT_DTYPE, decode_semantic, encode_instance
 from ._images import write_image
 
-#: CARLA releases the capture program supports (the ``carla`` client package must match the server).
 SUPPORTED_CARLA_VERSIONS = ("0.9.10", "0.9.11", "0.9.12", "0.9.13", "0.9.14", "0.9.15", "0.9.16")
-#: The 15 weather presets of ``carla.WeatherParameters`` in every supported release (0.9.10+).
+"""CARLA releases the capture program supports (the ``carla`` client package must match the server)."""
 CARLA_WEATHER_PRESETS: tuple[str, ...] = (
     "Default", "ClearNoon", "CloudyNoon", "WetNoon", "WetCloudyNoon", "MidRainyNoon", "HardRainNoon",
     "SoftRainNoon", "ClearSunset", "CloudySunset", "WetSunset", "WetCloudySunset", "MidRainSunset",
     "HardRainSunset", "SoftRainSunset",
 )
-#: Presets that later releases add (night presets, dust storm): accepted by name, and then only when
-#: the connected ``carla`` client has them (`validate_weather` with ``carla=``).
+"""The 15 weather presets of ``carla.WeatherParameters`` in every supported release (0.9.10+)."""
 CARLA_LATER_WEATHER_PRESETS: tuple[str, ...] = (
     "ClearNight", "CloudyNight", "WetNight", "WetCloudyNight", "SoftRainNight", "MidRainyNight",
     "HardRainNight", "DustStorm",
 )
-#: The nine presets SynWoodScape was captured with (the paper's list, Town10HD, CARLA 0.9.10.1).
+"""Presets that later releases add (night presets, dust storm): accepted by name, and then only when
+the connected ``carla`` client has them (`validate_weather` with ``carla=``)."""
 SYNWOODSCAPE_WEATHER_PRESETS: tuple[str, ...] = (
     "ClearNoon", "ClearSunset", "CloudyNoon", "CloudySunset", "Default", "WetCloudyNoon", "WetCloudySunset",
     "WetNoon", "WetSunset",
 )
-#: Blueprint ids of CARLA's camera sensors by image kind (``instance`` exists from 0.9.14 on).
+"""The nine presets SynWoodScape was captured with (the paper's list, Town10HD, CARLA 0.9.10.1)."""
 CAMERA_BLUEPRINTS: dict[str, str] = {
     "rgb": "sensor.camera.rgb",
     "depth": "sensor.camera.depth",
@@ -76,7 +75,7 @@ CAMERA_BLUEPRINTS: dict[str, str] = {
     "instance": "sensor.camera.instance_segmentation",
     "dvs": "sensor.camera.dvs",
 }
-#: Blueprint ids of the other sensors.
+"""Blueprint ids of CARLA's camera sensors by image kind (``instance`` exists from 0.9.14 on)."""
 SENSOR_BLUEPRINTS: dict[str, str] = {
     "lidar": "sensor.lidar.ray_cast",
     "semantic_lidar": "sensor.lidar.ray_cast_semantic",
@@ -84,17 +83,18 @@ SENSOR_BLUEPRINTS: dict[str, str] = {
     "imu": "sensor.other.imu",
     "gnss": "sensor.other.gnss",
 }
-#: Vehicle blueprints with two wheels (used when a blueprint has no ``number_of_wheels`` attribute).
+"""Blueprint ids of the other sensors."""
 TWO_WHEELER_BLUEPRINTS = frozenset({
     "vehicle.bh.crossbike", "vehicle.diamondback.century", "vehicle.gazelle.omafiets",
     "vehicle.harley-davidson.low_rider", "vehicle.kawasaki.ninja", "vehicle.yamaha.yzf", "vehicle.vespa.zx125",
 })
-#: Actor semantic tag of each category in each CARLA tag table (``"0.9.10"``: 0.9.10-0.9.13,
-#: ``"0.9.14"``: 0.9.14+ Cityscapes order).
+"""Vehicle blueprints with two wheels (used when a blueprint has no ``number_of_wheels`` attribute)."""
 ACTOR_TAGS: dict[str, dict[str, int]] = {
     "0.9.10": {"ego": 10, "four_wheeler": 10, "two_wheeler": 10, "pedestrian": 4},
     "0.9.14": {"ego": 14, "four_wheeler": 14, "two_wheeler": 18, "pedestrian": 12},
 }
+"""Actor semantic tag of each category in each CARLA tag table (``"0.9.10"``: 0.9.10-0.9.13,
+``"0.9.14"``: 0.9.14+ Cityscapes order)."""
 _LIDAR_POINT = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
 
 

@@ -40,8 +40,8 @@ from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict
 from ..transforms import Pose
 from ._calibration_json import calibration_from_dict
 
-#: Values of a correspondences file's ``frame``.
 CORRESPONDENCE_FRAMES: tuple[str, ...] = ("board", "vehicle", "camera")
+"""Values of a correspondences file's ``frame``."""
 
 
 class CorrespondenceError(JaxfishError):

@@ -13,8 +13,8 @@ from ._atomic import atomic_path
 from ._carla import DVS_EVENT_DTYPE
 from ._images import PNG_LEVEL, write_image
 
-#: tonic's event dtype (``tonic.io.make_structured_array``): int64 ``x, y, t, p``; t in µs.
 TONIC_EVENT_DTYPE = np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
+"""tonic's event dtype (``tonic.io.make_structured_array``): int64 ``x, y, t, p``; t in µs."""
 
 
 def carla_events(x, y, t_ns, polarity) -> np.ndarray:

@@ -15,10 +15,10 @@ from .._errors import ImageError
 from ._atomic import atomic_path
 from ._images import PNG_LEVEL, read_image, write_image
 
-#: The ``.flo`` header tag (float32 202021.25, the bytes "PIEH").
 FLO_TAG = 202021.25
-#: KITTI flow PNG scale and offset: ``value = (stored - 2**15) / 64``.
+"""The ``.flo`` header tag (float32 202021.25, the bytes "PIEH")."""
 KITTI_FLOW_SCALE = 64.0
+"""KITTI flow PNG scale and offset: ``value = (stored - 2**15) / 64``."""
 KITTI_FLOW_OFFSET = 2**15
 
 

@@ -21,13 +21,13 @@ from .._errors import ImageError
 from ._atomic import atomic_path
 
 _WRITABLE = {".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg"}
-#: zlib level of the PNGs `write_image` writes by default (1 = fastest). With the Up row filter
-#: (`PNG_FILTER`), level 1 encodes ~4x faster than OpenImageIO's default (level 6, no filter) and
-#: decodes ~1.5x faster, for ~40 % more bytes (measured on jaxfish's dataset images; see
-#: ``docs/dataset.md``).
 PNG_LEVEL = 1
-#: PNG row filter of every written PNG: "Up" (libpng ``PNG_FILTER_UP``; each row minus the row above).
+"""zlib level of the PNGs `write_image` writes by default (1 = fastest). With the Up row filter
+(`PNG_FILTER`), level 1 encodes ~4x faster than OpenImageIO's default (level 6, no filter) and
+decodes ~1.5x faster, for ~40 % more bytes (measured on jaxfish's dataset images; see
+``docs/dataset.md``)."""
 PNG_FILTER = 0x20
+"""PNG row filter of every written PNG: "Up" (libpng ``PNG_FILTER_UP``; each row minus the row above)."""
 _DTYPES = {
     np.dtype(np.uint8): oiio.UINT8,
     np.dtype(np.uint16): oiio.UINT16,

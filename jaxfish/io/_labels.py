@@ -18,8 +18,8 @@ from .._errors import ImageError
 from ._atomic import atomic_path, atomic_write_bytes, atomic_write_text
 from ._images import PNG_LEVEL, read_image, read_image_metadata, write_image
 
-#: Metadata key of the palette JSON in colour label PNGs.
 PALETTE_ATTRIBUTE = "jaxfish:palette"
+"""Metadata key of the palette JSON in colour label PNGs."""
 
 
 def write_label_png(path: str | os.PathLike, labels: np.ndarray, *, png_level: int = PNG_LEVEL) -> Path:
@@ -180,8 +180,8 @@ def write_depth_npy(path: str | os.PathLike, depth_m: np.ndarray) -> Path:
     return path
 
 
-#: Metadata key of the definition JSON in the depth EXRs written by `write_depth_exr`.
 DEPTH_ATTRIBUTE = "jaxfish:depth"
+"""Metadata key of the definition JSON in the depth EXRs written by `write_depth_exr`."""
 
 
 def write_depth_exr(path: str | os.PathLike, depth_m: np.ndarray, definition: Mapping[str, Any] | None = None) -> Path:
@@ -203,9 +203,9 @@ def read_depth_exr(path: str | os.PathLike) -> np.ndarray:
     return a[..., 0]
 
 
-#: What the dataset's depth EXRs hold (their `DEPTH_ATTRIBUTE` metadata).
 RANGE_DEPTH_DEFINITION = {"quantity": "Euclidean range along the pixel's ray (not planar z-depth)", "unit": "m",
                           "sky_m": 1000.0, "no_ray": 0.0, "instant": "t"}
+"""What the dataset's depth EXRs hold (their `DEPTH_ATTRIBUTE` metadata)."""
 
 
 def write_npz(path: str | os.PathLike, **arrays: np.ndarray) -> Path:
@@ -223,8 +223,8 @@ def write_npz(path: str | os.PathLike, **arrays: np.ndarray) -> Path:
     return path
 
 
-#: Range (metres) spanned by the depth colour map: nearer is brightest, farther darkest.
 DEPTH_COLOR_RANGE_M = (0.5, 100.0)
+"""Range (metres) spanned by the depth colour map: nearer is brightest, farther darkest."""
 _MAGMA = np.asarray([[0, 0, 4], [59, 15, 112], [140, 41, 129], [222, 73, 104], [254, 159, 109], [252, 253, 191]], np.float64)
 
 
@@ -298,9 +298,9 @@ def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.nd
 
 
 # ---------------------------------------------------------------------------- capture -> ground truth
-#: Box slots are allocated in multiples of this many (inactive padding), so that frames whose actor
-#: counts differ (CARLA spawns and removes actors) share compiled programs instead of compiling per count.
 BOX_SLOT_QUANTUM = 32
+"""Box slots are allocated in multiples of this many (inactive padding), so that frames whose actor
+counts differ (CARLA spawns and removes actors) share compiled programs instead of compiling per count."""
 
 
 def box_slots(num_actors: int) -> int:

@@ -21,11 +21,11 @@ from ._parameters import (
     with_intrinsics,
 )
 
-#: Incidence angles closer than this to pi (radians) are not sampled: the ray straight behind the
-#: optical axis has no azimuth, and is invalid in every model.
 BEHIND_AXIS_MARGIN_RAD = 1e-3
-#: Margin below a source model's own theta_max (for models whose theta_max is a supremum).
+"""Incidence angles closer than this to pi (radians) are not sampled: the ray straight behind the
+optical axis has no azimuth, and is invalid in every model."""
 SOURCE_THETA_MARGIN_RAD = 1e-3
+"""Margin below a source model's own theta_max (for models whose theta_max is a supremum)."""
 
 
 class ConversionResult(eqx.Module):

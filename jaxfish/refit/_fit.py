@@ -21,8 +21,8 @@ from ..cameras import AbstractCamera
 from ..transforms import Pose
 from ._parameters import intrinsics_vector, parameter_names, with_intrinsics
 
-#: Robust losses: rho(s) of the squared per-point residual norm s (pixels²), scale c (pixels).
 LOSSES: tuple[str, ...] = ("linear", "huber", "cauchy", "soft_l1")
+"""Robust losses: rho(s) of the squared per-point residual norm s (pixels²), scale c (pixels)."""
 
 
 def robust_rho(s: Array, loss: str, scale: float | Array) -> Array:

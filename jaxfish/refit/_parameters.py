@@ -15,7 +15,6 @@ from ..cameras._double_sphere import DoubleSphere
 from ..cameras._kannala_brandt import KannalaBrandt
 from ..cameras._unified import ExtendedUnifiedCamera, UnifiedCamera
 
-#: Model names (the ``intrinsic.model`` value of a calibration JSON) and their camera classes.
 MODEL_CLASSES: dict[str, type[AbstractCamera]] = {
     "radial_poly": WoodScapeFisheye,
     "kannala_brandt": KannalaBrandt,
@@ -23,9 +22,8 @@ MODEL_CLASSES: dict[str, type[AbstractCamera]] = {
     "extended_unified": ExtendedUnifiedCamera,
     "double_sphere": DoubleSphere,
 }
+"""Model names (the ``intrinsic.model`` value of a calibration JSON) and their camera classes."""
 
-#: Intrinsic parameter names of each model, in vector order (pixels for k of radial_poly,
-#: fx, fy, cx, cy, cx_offset, cy_offset; dimensionless otherwise).
 PARAMETER_NAMES: dict[str, tuple[str, ...]] = {
     "radial_poly": ("k1", "k2", "k3", "k4", "cx_offset", "cy_offset", "aspect_ratio"),
     "kannala_brandt": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
@@ -33,8 +31,9 @@ PARAMETER_NAMES: dict[str, tuple[str, ...]] = {
     "extended_unified": ("fx", "fy", "cx", "cy", "alpha", "beta"),
     "double_sphere": ("fx", "fy", "cx", "cy", "xi", "alpha"),
 }
+"""Intrinsic parameter names of each model, in vector order (pixels for k of radial_poly,
+fx, fy, cx, cy, cx_offset, cy_offset; dimensionless otherwise)."""
 
-#: Aliases accepted wherever a model name is expected.
 MODEL_ALIASES: dict[str, str] = {
     "woodscape": "radial_poly",
     "kb": "kannala_brandt",
@@ -44,6 +43,7 @@ MODEL_ALIASES: dict[str, str] = {
     "eucm": "extended_unified",
     "ds": "double_sphere",
 }
+"""Aliases accepted wherever a model name is expected."""
 
 
 def canonical_model_name(model: str | type | AbstractCamera) -> str:

@@ -42,8 +42,8 @@ from ._lut import Lut, border_pixels, centre_sample, ring_positions, split_padde
 DEPTH_AGREEMENT_REL_TOL = 0.05
 """Default ``rel_tol`` of `resample_depth`: inverse depth is interpolated only when the four taps
 satisfy ``max / min <= 1 + rel_tol``; otherwise the nearest tap is used."""
-#: Frame batches up to this size are unrolled (one kernel per frame in one program); larger ones loop.
 _UNROLL_FRAMES = 8
+"""Frame batches up to this size are unrolled (one kernel per frame in one program); larger ones loop."""
 FAR_DEPTH_M = 1000.0
 """CARLA's far / sky depth in metres: a far sample is never interpolated and stays exactly this."""
 

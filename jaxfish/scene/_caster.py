@@ -27,13 +27,13 @@ from ._model import (
 )
 from ._tags import CARLA_SEMANTIC_TAGS as TAGS
 
-#: Far plane (metres): no hit beyond it; sky and far pixels report this range and depth
-#: (CARLA's depth camera saturates at 1000 m).
 FAR_M = 1000.0
-#: Rays per chunk of the caster (bounds the (rays x primitives) working set).
+"""Far plane (metres): no hit beyond it; sky and far pixels report this range and depth
+(CARLA's depth camera saturates at 1000 m)."""
 DEFAULT_CHUNK = 4096
-#: Hits closer than this to the ray origin are ignored (metres).
+"""Rays per chunk of the caster (bounds the (rays x primitives) working set)."""
 _T_MIN = 1e-4
+"""Hits closer than this to the ray origin are ignored (metres)."""
 _F32 = jnp.float32
 
 
@@ -263,9 +263,9 @@ def _sphere_entry2(b, c):
     return jnp.where((disc >= 0) & (t > _T_MIN), t, jnp.inf)
 
 
-#: Primitives of each kind tested per chunk after culling (when more survive the cull, the chunk
-#: tests all of them: culling never changes a result).
 CULL_CANDIDATES = 32
+"""Primitives of each kind tested per chunk after culling (when more survive the cull, the chunk
+tests all of them: culling never changes a result)."""
 
 
 def _nearest(scene: Scene, posed: _Posed, o, d, box_idx, cap_idx):
@@ -370,9 +370,9 @@ def _cast_chunk(scene: Scene, posed: _Posed, o: Float[Array, "C 3"], d: Float[Ar
                 normal_world=n_world.astype(o.dtype))
 
 
-#: Rays per jitted call of the caster: every render is cut into blocks of this many rays (renders of
-#: at most one chunk use a one-chunk block), so all cameras share two compilations.
 DEFAULT_BLOCK = 65536
+"""Rays per jitted call of the caster: every render is cut into blocks of this many rays (renders of
+at most one chunk use a one-chunk block), so all cameras share two compilations."""
 
 
 @eqx.filter_jit

@@ -25,14 +25,14 @@ from ._model import (
 )
 from ._tags import CARLA_SEMANTIC_TAGS as TAGS
 
-#: Frame interval of a capture (seconds): 10 FPS as SynWoodScape.
 DEFAULT_DT_S = 0.1
-#: Simulation time of frame 0's t-1 instant (seconds).
+"""Frame interval of a capture (seconds): 10 FPS as SynWoodScape."""
 _T0_S = 1.0
-#: Primitive arrays are padded to a multiple of this (inactive entries), to share compilations.
+"""Simulation time of frame 0's t-1 instant (seconds)."""
 _PAD = 32
-#: Actor ids start here (CARLA-style integers); the ego is the first.
+"""Primitive arrays are padded to a multiple of this (inactive entries), to share compilations."""
 FIRST_ACTOR_ID = 100
+"""Actor ids start here (CARLA-style integers); the ego is the first."""
 _ROAD_HALF_WIDTH = 7.0
 _LANE_WIDTH = 3.5
 _SIDEWALK_WIDTH = 4.0

@@ -22,12 +22,12 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..transforms import CARLA_TO_ISO, Pose
 
-#: Object index of the static world (buildings, poles, vegetation, ...; actor id 0).
 STATIC_OBJECT = 0
-#: Object index of the ego vehicle.
+"""Object index of the static world (buildings, poles, vegetation, ...; actor id 0)."""
 EGO_OBJECT = 1
-#: Texture kinds of a primitive (object-local procedural patterns; see `docs/scene.md`).
+"""Object index of the ego vehicle."""
 TEXTURE_PLAIN, TEXTURE_CHECKER, TEXTURE_NOISE, TEXTURE_WINDOWS, TEXTURE_STRIPES = 0, 1, 2, 3, 4
+"""Texture kinds of a primitive (object-local procedural patterns; see `docs/scene.md`)."""
 
 
 class Scene(eqx.Module):

@@ -23,20 +23,20 @@ from ._caster import DEFAULT_CHUNK, RenderBuffers, cast_rays, render
 from ._generator import ego_body_boxes
 from ._model import EGO_OBJECT, StreetFrame
 
-#: Standard gravity (m/s²) added to the accelerometer, as CARLA's IMU does.
 GRAVITY_M_S2 = 9.81
-#: CARLA's equatorial Earth radius (metres) for its GNSS Mercator projection.
+"""Standard gravity (m/s²) added to the accelerometer, as CARLA's IMU does."""
 EARTH_RADIUS_M = 6378137.0
-#: CARLA lidar atmosphere attenuation rate (1/m): intensity = exp(-rate * distance).
+"""CARLA's equatorial Earth radius (metres) for its GNSS Mercator projection."""
 LIDAR_ATTENUATION_PER_M = 0.004
-#: Semantic lidar point dtype, as CARLA's ``SemanticLidarDetection`` raw data.
+"""CARLA lidar atmosphere attenuation rate (1/m): intensity = exp(-rate * distance)."""
 SEMANTIC_LIDAR_DTYPE = np.dtype(
     [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("CosAngle", "<f4"), ("ObjIdx", "<u4"), ("ObjTag", "<u4")]
 )
-#: Radar detection dtype, as CARLA's ``RadarDetection`` raw data (m/s, rad, rad, m).
+"""Semantic lidar point dtype, as CARLA's ``SemanticLidarDetection`` raw data."""
 RADAR_DTYPE = np.dtype([("velocity", "<f4"), ("azimuth", "<f4"), ("altitude", "<f4"), ("depth", "<f4")])
-#: CARLA's DVS event dtype (t in nanoseconds), the same as `jaxfish.io.DVS_EVENT_DTYPE`.
+"""Radar detection dtype, as CARLA's ``RadarDetection`` raw data (m/s, rad, rad, m)."""
 DVS_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("pol", "?")])
+"""CARLA's DVS event dtype (t in nanoseconds), the same as `jaxfish.io.DVS_EVENT_DTYPE`."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-#: CARLA 0.9.10 semantic tag of each class name (red channel of the semantic camera).
 CARLA_SEMANTIC_TAGS: dict[str, int] = {
     "unlabeled": 0,
     "building": 1,
@@ -28,3 +27,4 @@ CARLA_SEMANTIC_TAGS: dict[str, int] = {
     "water": 21,
     "terrain": 22,
 }
+"""CARLA 0.9.10 semantic tag of each class name (red channel of the semantic camera)."""

@@ -18,10 +18,10 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._pose import Pose
 
-#: Reflection between CARLA/Unreal coordinates and ISO 8855 coordinates (its own inverse).
 CARLA_TO_ISO = np.diag([1.0, -1.0, 1.0])
-#: A CARLA camera's local Unreal coordinates -> OpenCV camera coordinates: (x, y, z) -> (y, -z, x).
+"""Reflection between CARLA/Unreal coordinates and ISO 8855 coordinates (its own inverse)."""
 UNREAL_CAMERA_TO_OPENCV = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+"""A CARLA camera's local Unreal coordinates -> OpenCV camera coordinates: (x, y, z) -> (y, -z, x)."""
 
 
 def carla_to_iso(points: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3"]:
