@@ -4,6 +4,7 @@ from ._base import AbstractCamera as AbstractCamera
 from ._double_sphere import DoubleSphere as DoubleSphere
 from ._equirectangular import Cylindrical as Cylindrical
 from ._equirectangular import Equirectangular as Equirectangular
+from ._kannala_brandt import KB_THETA_MAX_MARGIN_RAD as KB_THETA_MAX_MARGIN_RAD
 from ._kannala_brandt import KannalaBrandt as KannalaBrandt
 from ._orthographic import Orthographic as Orthographic
 from ._pinhole import Pinhole as Pinhole

@@ -67,16 +67,17 @@ def refit(
     import numpy as np
 
     from ..calibration import Calibration
-    from ..io._correspondences import load_camera_calibration, load_correspondences, save_camera_calibration
+    from ..io import load_camera_calibration, load_correspondences, save_camera_calibration
     from ..refit import Correspondences, canonical_model_name, convert_camera
     from ..refit import refit as run_refit
     from ..transforms import Pose
 
     corr, frame, view_names = load_correspondences(correspondences)
+    flavor = "woodscape"
     if calibration is not None:
         calib = load_camera_calibration(calibration, dtype=np.float64)
         camera, mount = calib.camera, calib.camera_to_vehicle
-        name = calib.name
+        name, flavor = calib.name, calib.flavor
         if model is not None and canonical_model_name(model) != canonical_model_name(camera):
             camera = convert_camera(camera, model).camera
     else:
@@ -97,7 +98,7 @@ def refit(
         raise fail(f"{correspondences}: {e}") from None
     if frame == "vehicle" and pose_fitted:
         mount = Pose(result.poses.rotation_matrix[0], result.poses.translation[0]).inverse()
-    save_camera_calibration(Calibration(name, result.camera, mount), out)
+    save_camera_calibration(Calibration(name, result.camera, mount, flavor), out)
     names = view_names if frame != "vehicle" else ["vehicle"]
     std = dict(zip(result.parameter_names, np.asarray(result.standard_deviations).tolist(), strict=True))
     pnames = [n for n in result.parameter_names if not n.startswith("view")]
@@ -154,7 +155,7 @@ def convert(
     import numpy as np
 
     from ..calibration import Calibration
-    from ..io._correspondences import load_camera_calibration, save_camera_calibration
+    from ..io import load_camera_calibration, save_camera_calibration
     from ..refit import canonical_model_name, convert_camera
 
     calib = load_camera_calibration(calibration, dtype=np.float64)
@@ -164,7 +165,7 @@ def convert(
                                 theta_max=None if theta_max_deg is None else math.radians(theta_max_deg))
     except ValueError as e:
         raise fail(str(e)) from None
-    save_camera_calibration(Calibration(calib.name, result.camera, calib.camera_to_vehicle), out)
+    save_camera_calibration(Calibration(calib.name, result.camera, calib.camera_to_vehicle, calib.flavor), out)
     summary = {
         "source_model": canonical_model_name(calib.camera), "target_model": target,
         "max_px": float(result.max_px), "rms_px": float(result.rms_px),

@@ -56,6 +56,28 @@ def _prepare(images, kind: str, names: list[str]):
     return x
 
 
+def _capture_rgb(bgra):
+    from ..io import bgra_to_rgb
+
+    return bgra_to_rgb(bgra)
+
+
+def _capture_tags(bgra):
+    from ..io import decode_semantic
+
+    return decode_semantic(bgra)[..., None]
+
+
+def _capture_depth(bgra):
+    from ..io import decode_depth
+
+    return decode_depth(bgra)[..., None]
+
+
+# --kind -> (file stem in a capture's face directory, decoder of CARLA's BGRA buffer)
+_CAPTURE_FILES = {"rgb": ("rgb", _capture_rgb), "label": ("semantic", _capture_tags), "depth": ("depth", _capture_depth)}
+
+
 def _resample(x, lut, kind: str, *, planar: bool):
     import jax.numpy as jnp
     import numpy as np
@@ -120,15 +142,19 @@ def _run(body) -> None:
 
 @app.command("cube2fisheye")
 def cube2fisheye(
-    faces: Path = typer.Option(..., "--faces", help="Directory holding front, left, right, top, bottom (.png or .exr, all S x S); back is optional."),
+    faces: Path = typer.Option(..., "--faces", help="Directory holding front, left, right, top, bottom (.png or .exr, all S x S; back is optional), "
+                               "or a capture's camera directory (CAPTURE/frames/N/cameras/FV)."),
     calibration: Path = typer.Option(..., "--calibration", "-c", help="WoodScape/SynWoodScape calibration JSON of the fisheye."),
     out: Path = typer.Option(..., "--out", "-o", help="Output file: .png, .exr or .npy."),
     kind: str = typer.Option("rgb", "--kind", help="rgb (bilinear), label (nearest / majority) or depth (planar z -> range)."),
     supersample: int = typer.Option(1, "--supersample", help="N x N rays per fisheye pixel (rgb: mean, label: majority, depth: centre)."),
     errata: bool = typer.Option(False, "--errata", help="Apply the SynWoodScape calibration errata when loading."),
+    instant: str = typer.Option("curr", "--instant", help="With a capture's camera directory: curr (t) or prev (t-1)."),
 ) -> None:
     """Make a fisheye image (rgb, label or depth) from CARLA's perspective cube faces."""
     _check_options(kind, out, supersample)
+    if instant not in ("curr", "prev"):
+        raise fail(f"--instant must be curr or prev, got {instant!r}")
 
     def body():
         import jax.numpy as jnp
@@ -139,8 +165,13 @@ def cube2fisheye(
 
         if not faces.is_dir():
             raise FileNotFoundError(f"{faces}: faces directory not found")
+        capture = (faces / FIVE_FACES[0]).is_dir()  # a capture camera: FACE/{rgb,semantic,depth}_{instant}.png
+        stem, decode = _CAPTURE_FILES[kind]
 
         def find(name):
+            if capture:
+                p = faces / name / f"{stem}_{instant}.png"
+                return p if p.is_file() else None
             hits = [faces / f"{name}{e}" for e in _FACE_EXTS if (faces / f"{name}{e}").is_file()]
             if len(hits) > 1:
                 raise ImageError(f"{faces}: face {name!r} exists as both {hits[0].name} and {hits[1].name}")
@@ -149,15 +180,18 @@ def cube2fisheye(
         paths = {name: find(name) for name in FIVE_FACES + ("back",)}
         missing = [n for n in FIVE_FACES if paths[n] is None]
         if missing:
+            expected = [f"{n}/{stem}_{instant}.png" if capture else f"{n}.png|.exr" for n in missing]
             raise ImageError(
                 f"{faces}: missing cube face{'s' if len(missing) > 1 else ''} {', '.join(missing)} "
-                f"(expected {', '.join(n + '.png|.exr' for n in missing)})"
+                f"(expected {', '.join(expected)})"
             )
         names = FIVE_FACES + (("back",) if paths["back"] is not None else ())
         calib = load_calibration(calibration, apply_errata=errata)
         images, size = [], None
         for name in names:
             img = read_image(paths[name])
+            if capture:  # CARLA's raw BGRA buffers (docs/capture_layout.md)
+                img = decode(img)
             if img.shape[0] != img.shape[1]:
                 raise ImageError(f"{paths[name]}: cube faces must be square, got {img.shape[1]}x{img.shape[0]}")
             if size is not None and img.shape[0] != size[1]:
@@ -195,7 +229,7 @@ def _rotation(yaw_deg: float, pitch_deg: float, roll_deg: float):
 @app.command("reproject")
 def reproject(
     image: Path = typer.Argument(..., help="Fisheye image (.png/.exr) taken with the calibration's camera."),
-    calibration: Path = typer.Option(..., "--calibration", "-c", help="Calibration JSON of the input fisheye."),
+    calibration: Path = typer.Option(..., "--calibration", "-c", help="Calibration JSON of the input fisheye (any lens model)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output file: .png, .exr or .npy."),
     to: str = typer.Option("pinhole", "--to", help="Target model: pinhole, equirectangular, cylindrical or fisheye."),
     width: int | None = typer.Option(None, "--width", help="Target width (default: the input's)."),
@@ -204,7 +238,7 @@ def reproject(
     yaw: float = typer.Option(0.0, "--yaw", help="Turn the target view right by this many degrees."),
     pitch: float = typer.Option(0.0, "--pitch", help="Turn the target view up by this many degrees."),
     roll: float = typer.Option(0.0, "--roll", help="Roll the target view clockwise by this many degrees."),
-    target_calibration: Path | None = typer.Option(None, "--target-calibration", help="Calibration JSON of the target (--to fisheye)."),
+    target_calibration: Path | None = typer.Option(None, "--target-calibration", help="Calibration JSON of the target, any lens model (--to fisheye)."),
     kind: str = typer.Option("rgb", "--kind", help="rgb (bilinear), label (nearest) or depth (range in metres, kept as range)."),
     supersample: int = typer.Option(1, "--supersample", help="N x N rays per output pixel."),
 ) -> None:
@@ -218,11 +252,11 @@ def reproject(
     def body():
         import jax.numpy as jnp
 
-        from .. import Cylindrical, Equirectangular, Pinhole
+        from .. import Cylindrical, Equirectangular, Pinhole, WoodScapeFisheye
         from .._errors import ImageError
-        from ..io import load_calibration, read_image
+        from ..io import load_camera_calibration, read_image
 
-        calib = load_calibration(calibration)
+        calib = load_camera_calibration(calibration)  # any lens model (WoodScape files included)
         cam = calib.camera.astype(jnp.float32)
         img = read_image(image)
         if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
@@ -250,10 +284,16 @@ def reproject(
             else:
                 target = Cylindrical(width=w, height=h, lon_range=lon, dtype=jnp.float32)
         else:
-            target = load_calibration(target_calibration).camera.astype(jnp.float32)
+            target = load_camera_calibration(target_calibration).camera.astype(jnp.float32)
             if width or height:
+                if not isinstance(target, WoodScapeFisheye):
+                    raise ImageError(f"{target_calibration}: --width/--height apply to a radial_poly target only "
+                                     "(its principal point is an offset from the image centre); omit them to use "
+                                     "the target calibration's own size")
                 target = target.__class__(target.k, width=w, height=h, cx_offset=target.cx_offset,
                                           cy_offset=target.cy_offset, aspect_ratio=target.aspect_ratio)
+            else:
+                w, h = target.width, target.height
         x = _prepare([img], kind, [str(image)])
         fns = _functions()
         r = jnp.asarray(_rotation(yaw, pitch, roll), jnp.float32)

@@ -85,6 +85,16 @@ from ._carla_capture import set_blueprint_attributes as set_blueprint_attributes
 from ._carla_capture import validate_weather as validate_weather
 from ._carla_capture import with_bev_altitude as with_bev_altitude
 from ._carla_capture import write_carla_frame as write_carla_frame
+from ._correspondences import CORRESPONDENCE_FRAMES as CORRESPONDENCE_FRAMES
+from ._correspondences import CorrespondenceError as CorrespondenceError
+from ._correspondences import camera_calibration_from_dict as camera_calibration_from_dict
+from ._correspondences import camera_calibration_to_dict as camera_calibration_to_dict
+from ._correspondences import correspondences_from_dict as correspondences_from_dict
+from ._correspondences import correspondences_to_dict as correspondences_to_dict
+from ._correspondences import load_camera_calibration as load_camera_calibration
+from ._correspondences import load_correspondences as load_correspondences
+from ._correspondences import save_camera_calibration as save_camera_calibration
+from ._correspondences import save_correspondences as save_correspondences
 from ._events import TONIC_EVENT_DTYPE as TONIC_EVENT_DTYPE
 from ._events import carla_events as carla_events
 from ._events import carla_to_tonic as carla_to_tonic

@@ -95,9 +95,10 @@ def calibration_from_dict(
         t = t * np.array([1.0, -1.0, 1.0])  # CARLA (y right) -> ISO 8855 (y left)
 
     intr = _mapping(data["intrinsic"], source, "intrinsic")
+    if intr.get("model", "radial_poly") != "radial_poly":  # before the key check: another model's keys differ
+        raise _fail(source, "intrinsic.model", f"only 'radial_poly' is supported, got {intr['model']!r} "
+                    "(jaxfish.io.load_camera_calibration reads every lens model)")
     _check_keys(intr, set(_INTRINSIC_KEYS), set(_INTRINSIC_KEYS), source, "intrinsic")
-    if intr["model"] != "radial_poly":
-        raise _fail(source, "intrinsic.model", f"only 'radial_poly' is supported, got {intr['model']!r}")
     if _number(intr["poly_order"], source, "intrinsic.poly_order") != 4:
         raise _fail(source, "intrinsic.poly_order", f"only 4 is supported, got {intr['poly_order']!r}")
     vals = {key: _number(intr[key], source, f"intrinsic.{key}") for key in _INTRINSIC_NUMBERS}

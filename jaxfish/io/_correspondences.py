@@ -16,12 +16,15 @@ or ``"camera"`` (points already in the OpenCV camera frame: no pose).
 ``intrinsic.model``::
 
     {"name": "FV",
-     "extrinsic": {"quaternion": [x, y, z, w], "translation": [tx, ty, tz]},   # camera -> vehicle
+     "extrinsic": {"quaternion": [x, y, z, w], "translation": [tx, ty, tz]},   # camera -> vehicle (ISO 8855)
      "intrinsic": {"model": "kannala_brandt", "width": 1280.0, "height": 966.0,
                    "fx": ..., "fy": ..., "cx": ..., "cy": ..., "k1": ..., "k2": ..., "k3": ..., "k4": ...}}
 
 with the parameters of `jaxfish.refit.PARAMETER_NAMES` (``cx``, ``cy`` in jaxfish's pixel-centre
 convention). ``"radial_poly"`` files are exactly WoodScape's (and read by `load_calibration`).
+As in WoodScape/SynWoodScape files, the extrinsic may instead hold SynWoodScape's
+``"translation used in CARLA (CARLA reference)"`` (CARLA frame, y right): the calibration's
+``flavor`` is then ``"synwoodscape"`` and writing it back keeps that form.
 """
 
 from __future__ import annotations
@@ -36,9 +39,12 @@ import numpy as np
 
 from .._errors import CalibrationError, JaxfishError
 from ..calibration import Calibration
+from ..cameras import WoodScapeFisheye
 from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict
 from ..transforms import Pose
-from ._calibration_json import calibration_from_dict
+from ._calibration_json import _SYNWOODSCAPE_T, _WOODSCAPE_T, calibration_from_dict, calibration_to_dict
+
+_CARLA_TO_ISO = np.array([1.0, -1.0, 1.0])  # y right <-> y left (its own inverse)
 
 CORRESPONDENCE_FRAMES: tuple[str, ...] = ("board", "vehicle", "camera")
 """Values of a correspondences file's ``frame``."""
@@ -180,19 +186,24 @@ def camera_calibration_from_dict(data: Any, *, source: str = "<calibration>", dt
     except ValueError as e:
         raise CalibrationError(str(e)) from None
     ext = data["extrinsic"]
-    if not isinstance(ext, dict) or set(ext) != {"quaternion", "translation"}:
-        raise CalibrationError(f"{source}: field 'extrinsic': expected {{'quaternion': [x, y, z, w], 'translation': [x, y, z]}}")
+    flavor, t_key = ("synwoodscape", _SYNWOODSCAPE_T) if isinstance(ext, dict) and _SYNWOODSCAPE_T in ext \
+        else ("woodscape", _WOODSCAPE_T)
+    if not isinstance(ext, dict) or set(ext) != {"quaternion", t_key}:
+        raise CalibrationError(f"{source}: field 'extrinsic': expected {{'quaternion': [x, y, z, w], 'translation': [x, y, z]}}"
+                               f" (or SynWoodScape's {_SYNWOODSCAPE_T!r} instead of 'translation')")
     q = np.asarray(ext["quaternion"], dtype=np.float64) if _numbers(ext["quaternion"], 4) else None
-    t = np.asarray(ext["translation"], dtype=np.float64) if _numbers(ext["translation"], 3) else None
+    t = np.asarray(ext[t_key], dtype=np.float64) if _numbers(ext[t_key], 3) else None
     if q is None:
         raise CalibrationError(f"{source}: field 'extrinsic.quaternion': expected 4 finite numbers (x, y, z, w)")
     if t is None:
-        raise CalibrationError(f"{source}: field 'extrinsic.translation': expected 3 finite numbers")
+        raise CalibrationError(f"{source}: field 'extrinsic.{t_key}': expected 3 finite numbers")
     qn = float(np.linalg.norm(q))
     if abs(qn - 1.0) > 1e-3:
         raise CalibrationError(f"{source}: field 'extrinsic.quaternion': expected a unit quaternion, norm is {qn:.6g}")
+    if flavor == "synwoodscape":
+        t = t * _CARLA_TO_ISO  # CARLA (y right) -> ISO 8855 (y left), as `calibration_from_dict`
     pose = Pose.from_quaternion_xyzw(q / qn, t, dtype=camera.fx.dtype)
-    return Calibration(name, camera, pose)
+    return Calibration(name, camera, pose, flavor)
 
 
 def _numbers(value: Any, n: int) -> bool:
@@ -207,14 +218,21 @@ def load_camera_calibration(path: str | os.PathLike, *, dtype=None) -> Calibrati
 
 
 def camera_calibration_to_dict(calib: Calibration) -> dict[str, Any]:
-    """The JSON object of a calibration of any lens model. The extrinsic is written in the
-    WoodScape (ISO 8855 vehicle) form, for every flavor."""
+    """The JSON object of a calibration of any lens model, in the calibration's flavor: a
+    ``radial_poly`` camera gives exactly `calibration_to_dict`'s WoodScape object; other models
+    write the extrinsic as it does (WoodScape: ISO 8855 ``"translation"``; SynWoodScape: the CARLA
+    frame translation under SynWoodScape's key), so a conversion keeps the file's vehicle frame."""
+    if isinstance(calib.camera, WoodScapeFisheye):
+        return calibration_to_dict(calib)
     q = np.asarray(calib.camera_to_vehicle.as_quaternion_xyzw(), dtype=float)
     t = np.asarray(calib.camera_to_vehicle.translation, dtype=float)
     if q.ndim != 1 or t.ndim != 1:
         raise ValueError("camera_calibration_to_dict: expected a single (unbatched) calibration")
+    t_key = _WOODSCAPE_T
+    if calib.flavor == "synwoodscape":
+        t, t_key = t * _CARLA_TO_ISO, _SYNWOODSCAPE_T
     return {
-        "extrinsic": {"quaternion": [float(x) for x in q], "translation": [float(x) for x in t]},
+        "extrinsic": {"quaternion": [float(x) for x in q], t_key: [float(x) for x in t]},
         "intrinsic": intrinsics_to_dict(calib.camera),
         "name": calib.name,
     }

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 import jaxfish as jf
 from jaxfish.cli import _refit as _refit  # noqa: F401  (registers refit and convert)
 from jaxfish.cli import app
-from jaxfish.io._correspondences import (
+from jaxfish.io import (
     CorrespondenceError,
     load_camera_calibration,
     load_correspondences,
@@ -43,6 +43,26 @@ def test_convert_to_kb_and_back(tmp_path):
     back = jf.load_calibration(tmp_path / "ws.json")  # WoodScape's own loader reads it
     assert back.name == original.name
     assert abs(float(back.camera.k[0]) - float(original.camera.k[0])) < 0.05 * float(original.camera.k[0])
+
+
+def test_convert_keeps_the_synwoodscape_flavor(tmp_path):
+    """A SynWoodScape file converts to a file of the same flavor (CARLA-frame translation key), so
+    the vehicle origin it implies is unchanged (``carla_capture.py --vehicle-origin auto``)."""
+    src = shared_path("calibration/synwoodscape/MVL.json")
+    original = jf.load_calibration(src)
+    assert original.flavor == "synwoodscape"
+    runner = CliRunner()
+    for model, name in (("kb", "kb.json"), ("woodscape", "ws.json")):
+        source = src if model == "kb" else tmp_path / "kb.json"
+        result = runner.invoke(app, ["convert", str(source), "--to", model, "-o", str(tmp_path / name)])
+        assert result.exit_code == 0, result.output
+        data = json.loads((tmp_path / name).read_text())
+        assert set(data["extrinsic"]) == set(json.loads(src.read_text())["extrinsic"])  # SynWoodScape's keys
+        out = load_camera_calibration(tmp_path / name)
+        assert out.flavor == "synwoodscape"
+        np.testing.assert_allclose(np.asarray(out.camera_to_vehicle.translation),
+                                   np.asarray(original.camera_to_vehicle.translation), atol=1e-12)
+    assert jf.load_calibration(tmp_path / "ws.json").flavor == "synwoodscape"
 
 
 def test_refit_from_board_correspondences(tmp_path):

@@ -75,6 +75,40 @@ def test_cube2fisheye_rgb_label_depth(tmp_path, small_calibration):
     np.testing.assert_allclose(depth[valid], 4.0, rtol=2e-3)  # range, not planar z
 
 
+def test_cube2fisheye_reads_a_capture_camera_directory(tmp_path, small_calibration):
+    """A capture's camera directory (raw CARLA BGRA faces) gives what its decoded faces give."""
+    from jaxfish.io._capture import write_images
+    from jaxfish.scene import CameraImages
+
+    calib_path, _ = small_calibration
+    cam, plain = tmp_path / "cam", tmp_path / "plain"
+    c = (np.arange(S) - (S - 1) / 2) / (S / 2)
+    x, y = np.meshgrid(c, c, indexing="xy")
+    for i, name in enumerate(FIVE_FACES):
+        rgb = np.broadcast_to(np.array([10 + i, 100 + i, 200 + i], np.uint8), (S, S, 3))  # R != B: a swap shows
+        tags = np.full((S, S), i + 1, np.uint8)
+        depth = (4.0 / np.sqrt(1 + x * x + y * y)).astype(np.float32)
+        (cam / name).mkdir(parents=True)
+        write_images(cam / name, CameraImages(rgb, depth, tags, np.zeros((S, S), np.int32)), "prev")
+        for kind, a in (("rgb", rgb), ("label", tags)):
+            write_image(plain / kind / f"{name}.png", np.ascontiguousarray(a))
+        write_image(plain / "depth" / f"{name}.exr", depth)
+    for kind, ext in (("rgb", "png"), ("label", "png"), ("depth", "npy")):
+        outs = [tmp_path / f"{kind}_{src}.{ext}" for src in ("capture", "plain")]
+        for faces, out in zip((cam, plain / kind), outs, strict=True):
+            result, text = _run("cube2fisheye", "--faces", faces, "-c", calib_path, "-o", out, "--kind", kind,
+                                "--instant", "prev")
+            assert result.exit_code == 0, text
+        got, want = (np.load(o) if ext == "npy" else read_image(o) for o in outs)
+        assert got.shape == want.shape and got.dtype == want.dtype
+        if kind == "depth":
+            np.testing.assert_allclose(got, want, atol=1e-3)  # CARLA's 24-bit depth code: ~6e-5 m steps
+        else:
+            assert np.array_equal(got, want)
+    result, text = _run("cube2fisheye", "--faces", cam, "-c", calib_path, "-o", tmp_path / "c.png")  # no *_curr files
+    assert result.exit_code == 2 and "front/rgb_curr.png" in text and not (tmp_path / "c.png").exists()
+
+
 def test_cube2fisheye_errors_leave_no_output(tmp_path, small_calibration):
     calib_path, _ = small_calibration
     faces = _faces(tmp_path / "f", "rgb")
@@ -131,3 +165,34 @@ def test_reproject_the_real_sample(tmp_path):
     img = read_image(out)
     assert img.shape == (120, 160, 3) and img.dtype == np.uint8 and img.std() > 10
     assert np.all(img.reshape(-1, 3).max(axis=0) > 0)
+
+
+def test_reproject_to_and_from_other_lens_models(tmp_path, small_calibration):
+    """Calibrations of any model (``jaxfish convert`` output) are read on both sides."""
+    from jaxfish.io import load_calibration, save_camera_calibration
+    from jaxfish.refit import convert_camera
+
+    calib_path, calib = small_calibration
+    kb = jf.Calibration(calib.name, convert_camera(calib.camera.astype(jnp.float64), "kb").camera, calib.camera_to_vehicle)
+    kb_path = save_camera_calibration(kb, tmp_path / "kb.json")
+    with pytest.raises(jf.CalibrationError, match="only 'radial_poly'.*load_camera_calibration"):
+        load_calibration(kb_path)  # the model is named, not a missing WoodScape key
+    rays, valid = calib.camera.unproject(calib.camera.pixel_grid(jnp.float64))
+    theta = np.degrees(np.arccos(np.clip(np.asarray(rays)[..., 2], -1, 1)))
+    src = write_image(tmp_path / "theta.exr", np.where(np.asarray(valid), theta, 0).astype(np.float32))
+    out = tmp_path / "kb.npy"
+    result, text = _run("reproject", src, "-c", calib_path, "-o", out, "--to", "fisheye", "--target-calibration", kb_path)
+    assert result.exit_code == 0, text
+    got = np.load(out)[..., 0]
+    kb_rays, kb_valid = kb.camera.unproject(kb.camera.pixel_grid(jnp.float64))
+    expected = np.degrees(np.arccos(np.clip(np.asarray(kb_rays)[..., 2], -1, 1)))
+    inner = np.asarray(kb_valid) & (expected < 80)
+    assert got.shape == (H, W)
+    np.testing.assert_allclose(got[inner], expected[inner], atol=1.0)  # bilinear, KB fitted to the lens
+    back = tmp_path / "back.npy"
+    result, text = _run("reproject", src, "-c", kb_path, "-o", back, "--to", "pinhole",
+                        "--width", 20, "--height", 20)
+    assert result.exit_code == 0, text  # a KB source calibration
+    result, text = _run("reproject", src, "-c", calib_path, "-o", tmp_path / "x.npy", "--to", "fisheye",
+                        "--target-calibration", kb_path, "--width", 50)
+    assert result.exit_code == 2 and "radial_polytargetonly" in text and not (tmp_path / "x.npy").exists()
