@@ -12,7 +12,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 
 def float_dtype(*xs: ArrayLike) -> jnp.dtype:
@@ -60,6 +60,28 @@ def theta_over_sin(theta: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     safe_s = jnp.where(small | near_pi, jnp.sin(jnp.ones_like(theta)), s)
     big = safe_theta / safe_s
     return jnp.where(small, taylor, jnp.where(near_pi, jnp.zeros_like(theta), big))
+
+
+def radial_ratio(theta: Float[Array, "*batch"], chi: Float[Array, "*batch"], r: Float[Array, "*batch"],
+                 z: Float[Array, "*batch"]) -> tuple[Float[Array, "*batch"], Bool[Array, "*batch"]]:
+    """``(theta / chi, defined)`` for a point with ``chi = |(x, y)|``, ``r = |p|`` and
+    ``theta = atan2(chi, z)``: radial lens models project to ``f(theta)/theta * theta/chi * (x, y)``.
+
+    In front (``z >= 0``) it is ``theta/sin(theta) / r``, smooth at the principal point; behind,
+    ``theta / chi`` itself: ``sin`` of a rounded theta near pi would lose every digit (0.3 px at
+    1e-12 rad from the back axis in float64), while ``chi`` is exact. ``defined`` is False for the
+    camera centre, points within float precision of the back axis (no azimuth) and non-finite
+    norms (coordinates beyond ~1e19 in float32 overflow their squares); the value is then a finite
+    placeholder."""
+    tiny = jnp.asarray(eps_for(theta.dtype), theta.dtype)
+    back = z < 0
+    finite = jnp.isfinite(r)
+    front_ok = (r > 0) & finite
+    back_ok = back & (chi > tiny * r) & finite
+    front = theta_over_sin(jnp.where(back, jnp.zeros_like(theta), theta)) / jnp.where(front_ok, r, 1.0)
+    behind = theta / jnp.where(back_ok, chi, 1.0)
+    value = jnp.where(back, jnp.where(back_ok, behind, 0.0), jnp.where(front_ok, front, 0.0))
+    return value, jnp.where(back, back_ok, front_ok)
 
 
 def resolve_dtype(dtype, *likes: ArrayLike) -> jnp.dtype:

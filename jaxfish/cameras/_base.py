@@ -114,3 +114,12 @@ def check_image_size(width: int, height: int, where: str) -> tuple[int, int]:
     if width <= 0 or height <= 0:
         raise ValueError(f"{where}: image size must be positive, got {width}x{height}")
     return width, height
+
+
+def finite_or_invalid(values: Float[Array, "*batch n"], valid: Bool[Array, "*batch"]
+                      ) -> tuple[Float[Array, "*batch n"], Bool[Array, "*batch"]]:
+    """``values`` with non-finite entries replaced by 0 and their elements marked invalid: inputs
+    whose squares overflow (beyond ~1e19 in float32) are masked, never returned as NaN or as a
+    wrong pixel marked valid."""
+    finite = jnp.isfinite(values)
+    return jnp.where(finite, values, jnp.zeros_like(values)), valid & jnp.all(finite, axis=-1)

@@ -36,3 +36,32 @@ def first_increasing_limit(derivative, params, dtype, *, margin: float) -> Float
     lo, hi = jax.lax.fori_loop(0, _BISECTIONS, bisect, (lo, hi))
     stationary = jnp.maximum(lo - margin, 0.0)
     return jnp.where(jnp.any(bad), stationary, jnp.asarray(math.pi, dtype))
+
+
+def bisection_guess(f, params, target: Float[Array, "*batch"], theta_max: Float[Array, ""]) -> Float[Array, "*batch"]:
+    """Element-wise bisection of ``f(params, theta) = target`` on ``[0, theta_max]``, where ``f``
+    increases (the valid domain), to about float precision: a starting point from which Newton
+    cannot fail. Not differentiated (the solve that starts from it is)."""
+    params = jax.lax.stop_gradient(params)
+    target = jax.lax.stop_gradient(target)
+    steps = _BISECTIONS if target.dtype == jnp.float64 else 30
+
+    def bisect(_, bracket):
+        a, b = bracket
+        m = 0.5 * (a + b)
+        low = f(params, m) < target
+        return jnp.where(low, m, a), jnp.where(low, b, m)
+
+    zero = jnp.zeros_like(target)
+    lo, hi = jax.lax.fori_loop(0, steps, bisect, (zero, zero + theta_max.astype(target.dtype)))
+    return 0.5 * (lo + hi)
+
+
+def solve_with_fallback(solve, f, params, target: Float[Array, "*batch"], theta_max: Float[Array, ""],
+                        theta0: Float[Array, "*batch"]):
+    """``solve(theta0)`` -> ``(theta, converged)``; if any element did not converge (Newton can
+    cycle where the lens polynomial has an inflection, near a stationary point), solve again from
+    `bisection_guess`. The retry runs only when needed (a ``lax.cond``)."""
+    theta, converged = solve(theta0)
+    return jax.lax.cond(jnp.all(converged), lambda: (theta, converged),
+                        lambda: solve(bisection_guess(f, params, target, theta_max)))

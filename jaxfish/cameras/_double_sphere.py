@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import resolve_dtype, safe_norm
-from ._base import AbstractCamera, as_coordinates, check_image_size
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
 from ._unified import _safe_sqrt, unified_w
 
 
@@ -84,13 +84,13 @@ class DoubleSphere(AbstractCamera):
         d1 = safe_norm(p)
         zz = xi * d1 + z
         d2 = _safe_sqrt(x * x + y * y + zz * zz)
-        valid = (d1 > 0) & (z > -double_sphere_w2(xi, alpha) * d1)
+        valid = (d1 > 0) & jnp.isfinite(d1) & (z > -double_sphere_w2(xi, alpha) * d1)
         denom = alpha * d2 + (1 - alpha) * zz
         valid = valid & (denom > 0)
         inv = 1.0 / jnp.where(valid, denom, jnp.ones_like(denom))
         u = self.fx.astype(dtype) * x * inv + self.cx.astype(dtype)
         v = self.fy.astype(dtype) * y * inv + self.cy.astype(dtype)
-        return jnp.stack([u, v], axis=-1), valid
+        return finite_or_invalid(jnp.stack([u, v], axis=-1), valid)
 
     def unproject(
         self, uv: Float[ArrayLike, "*batch 2"]
@@ -101,6 +101,8 @@ class DoubleSphere(AbstractCamera):
         alpha = self.alpha.astype(dtype)
         mx = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
         my = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)
+        measurable = jnp.isfinite(mx * mx + my * my)  # squares overflow for huge pixels: invalid, not NaN
+        mx, my = jnp.where(measurable, mx, 0.0), jnp.where(measurable, my, 0.0)
         r2 = mx * mx + my * my
         disc = 1 - (2 * alpha - 1) * r2
         inside = (alpha <= 0.5) | (disc >= 0)
@@ -112,4 +114,4 @@ class DoubleSphere(AbstractCamera):
         norm = safe_norm(ray, keepdims=True)
         ray = ray / jnp.where(norm > 0, norm, jnp.ones_like(norm))
         _, back = self.project(ray)
-        return ray, inside & back & (norm[..., 0] > 0)
+        return finite_or_invalid(ray, inside & back & (norm[..., 0] > 0) & measurable)

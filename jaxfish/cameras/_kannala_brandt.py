@@ -11,9 +11,9 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import eps_for, float_dtype, incidence_angle, resolve_dtype, safe_norm, stack_last, theta_over_sin
-from ._base import AbstractCamera, as_coordinates, check_image_size
-from ._domain import first_increasing_limit
+from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_norm, stack_last
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
+from ._domain import first_increasing_limit, solve_with_fallback
 
 KB_THETA_MAX_MARGIN_RAD = 1e-3
 """When theta_d(theta) has a stationary point theta_s <= pi, the valid domain is
@@ -50,8 +50,9 @@ def solve_theta_kb(
     k: Float[Array, "4"], theta_d: Float[Array, "*batch"], theta_max: Float[Array, ""]
 ) -> tuple[Float[Array, "*batch"], Bool[Array, "*batch"]]:
     """Invert theta_d(theta) = theta_d on [0, theta_max] with an element-wise optimistix Newton
-    (diagonal Jacobian, fused clipped-Newton initial guess from ``theta = theta_d``). Gradients
-    are implicit (exact). Returns ``(theta, converged)`` with a per-element residual check."""
+    (diagonal Jacobian, fused clipped-Newton initial guess from ``theta = theta_d``; repeated from
+    a bisection should it fail anywhere: `solve_with_fallback`). Gradients are implicit (exact).
+    Returns ``(theta, converged)`` with a per-element residual check."""
     dtype = theta_d.dtype
     tol = 1e-11 if dtype == jnp.float64 else 4e-6
     kk = jax.lax.stop_gradient(k)
@@ -60,21 +61,24 @@ def solve_theta_kb(
     for _ in range(_GUESS_STEPS):
         step = (theta_d_of_theta(kk, theta0) - td0) / jnp.maximum(dtheta_d_dtheta(kk, theta0), eps_for(dtype))
         theta0 = jnp.clip(theta0 - step, 0.0, theta_max)
-    sol = optx.root_find(
-        _residual,
-        optx.Newton(rtol=tol, atol=tol),
-        theta0,
-        args=(k, theta_d),
-        options=dict(lower=jnp.zeros((), dtype), upper=theta_max.astype(dtype)),
-        max_steps=_MAX_NEWTON_STEPS,
-        throw=False,
-        tags=frozenset({lx.diagonal_tag}),
-    )
-    theta = sol.value
-    residual = jnp.abs(theta_d_of_theta(k, theta) - theta_d)
-    converged = (residual <= 64 * eps_for(dtype) * jnp.maximum(jnp.abs(theta_d), 1.0)) & jnp.isfinite(theta)
-    theta = jnp.where(jnp.isfinite(theta), theta, jnp.zeros_like(theta))
-    return theta, converged
+
+    def newton(start):
+        sol = optx.root_find(
+            _residual,
+            optx.Newton(rtol=tol, atol=tol),
+            start,
+            args=(k, theta_d),
+            options=dict(lower=jnp.zeros((), dtype), upper=theta_max.astype(dtype)),
+            max_steps=_MAX_NEWTON_STEPS,
+            throw=False,
+            tags=frozenset({lx.diagonal_tag}),
+        )
+        theta = sol.value
+        residual = jnp.abs(theta_d_of_theta(k, theta) - theta_d)
+        converged = (residual <= 64 * eps_for(dtype) * jnp.maximum(jnp.abs(theta_d), 1.0)) & jnp.isfinite(theta)
+        return jnp.where(jnp.isfinite(theta), theta, jnp.zeros_like(theta)), converged
+
+    return solve_with_fallback(newton, theta_d_of_theta, k, theta_d, theta_max, theta0)
 
 
 class KannalaBrandt(AbstractCamera):
@@ -152,16 +156,16 @@ class KannalaBrandt(AbstractCamera):
         x, y, z = p[..., 0], p[..., 1], p[..., 2]
         chi = safe_norm(p[..., :2])
         r = safe_norm(p)
-        nonzero = r > 0
+        nonzero = (r > 0) & jnp.isfinite(r)  # squares overflow beyond ~1e19 (float32): no direction
         theta = incidence_angle(jnp.where(nonzero, chi, 0.0), jnp.where(nonzero, z, 1.0))
-        # theta_d / chi = (theta_d / θ) (θ / sin θ) / r: smooth at chi = 0.
+        # theta_d / chi = (theta_d / θ) (θ / chi): smooth at chi = 0, exact near the back axis.
+        theta_over_chi, defined = radial_ratio(theta, chi, r, z)
         t2 = theta * theta
         td_over_t = 1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])))
-        ratio = td_over_t * theta_over_sin(theta) / jnp.where(nonzero, r, 1.0)
+        ratio = td_over_t * theta_over_chi
         u = self.fx.astype(dtype) * x * ratio + self.cx.astype(dtype)
         v = self.fy.astype(dtype) * y * ratio + self.cy.astype(dtype)
-        behind_axis = (jnp.sin(theta) <= eps_for(dtype)) & (theta > 1.0)
-        valid = nonzero & (theta <= self.theta_max(dtype)) & ~behind_axis
+        valid = defined & (theta <= self.theta_max(dtype))
         return jnp.stack([u, v], axis=-1), valid
 
     def unproject(
@@ -173,11 +177,13 @@ class KannalaBrandt(AbstractCamera):
         mx = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
         my = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)
         r2 = mx * mx + my * my
+        measurable = jnp.isfinite(r2)  # squares overflow for huge pixels (float32): invalid, not NaN
+        r2 = jnp.where(measurable, r2, 0.0)
         td = jnp.where(r2 > 0, jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)), 0.0)
         td = jax.lax.optimization_barrier(td)
         theta_max = self.theta_max(dtype)
         td_max = theta_d_of_theta(jax.lax.stop_gradient(k), theta_max)
-        inside = td <= td_max
+        inside = td <= td_max * (1 + 4 * eps_for(dtype))  # the pixel of theta_max itself, after rounding
         theta, converged = solve_theta_kb(k, jnp.minimum(td, td_max), theta_max)
         # sin(θ)/theta_d, with its Taylor expansion near the principal point.
         tau = jnp.asarray(math.sqrt(eps_for(dtype)) * 100, dtype)
@@ -186,4 +192,4 @@ class KannalaBrandt(AbstractCamera):
         taylor = 1 - (k[0] + 1.0 / 6.0) * td * td
         s = jnp.where(small, taylor, jnp.sin(theta) / safe_td)
         ray = stack_last([mx * s, my * s, jnp.cos(theta)])
-        return ray, inside & converged
+        return finite_or_invalid(ray, inside & converged & measurable)

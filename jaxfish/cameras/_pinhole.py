@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import resolve_dtype
-from ._base import AbstractCamera, as_coordinates, check_image_size
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
 
 
 class Pinhole(AbstractCamera):
@@ -67,15 +67,16 @@ class Pinhole(AbstractCamera):
         inv_z = 1.0 / jnp.where(valid, z, 1.0)
         u = self.fx.astype(dtype) * p[..., 0] * inv_z + self.cx.astype(dtype)
         v = self.fy.astype(dtype) * p[..., 1] * inv_z + self.cy.astype(dtype)
-        return jnp.stack([u, v], axis=-1), valid
+        return finite_or_invalid(jnp.stack([u, v], axis=-1), valid)  # u overflows for z -> 0+
 
     def unproject(
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
-        """Unit rays of pixels (always valid)."""
+        """Unit rays of pixels (valid unless the coordinates are too large to square)."""
         uv, dtype = as_coordinates(uv, 2, "Pinhole.unproject: uv")
         x = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
         y = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)
+        ok = jnp.isfinite(x * x + y * y)  # squares overflow for huge pixels: invalid, not NaN
+        x, y = jnp.where(ok, x, 0.0), jnp.where(ok, y, 0.0)
         d = jnp.stack([x, y, jnp.ones_like(x)], axis=-1)
-        ray = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-        return ray, jnp.ones(uv.shape[:-1], dtype=bool)
+        return d / jnp.linalg.norm(d, axis=-1, keepdims=True), ok

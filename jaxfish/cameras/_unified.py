@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import resolve_dtype, safe_norm
-from ._base import AbstractCamera, as_coordinates, check_image_size
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
 
 
 def _safe_sqrt(x: Array) -> Array:
@@ -43,7 +43,8 @@ def eucm_project(cam, points, alpha, beta, name: str):
     alpha = alpha.astype(dtype)
     beta = beta.astype(dtype)
     x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    nonzero = safe_norm(p) > 0
+    r = safe_norm(p)
+    nonzero = (r > 0) & jnp.isfinite(r)
     d = _safe_sqrt(beta * (x * x + y * y) + z * z)
     w = unified_w(alpha)
     valid = nonzero & (z > -w * d)
@@ -52,7 +53,7 @@ def eucm_project(cam, points, alpha, beta, name: str):
     inv = 1.0 / jnp.where(valid, denom, jnp.ones_like(denom))
     u = cam.fx.astype(dtype) * x * inv + cam.cx.astype(dtype)
     v = cam.fy.astype(dtype) * y * inv + cam.cy.astype(dtype)
-    return jnp.stack([u, v], axis=-1), valid
+    return finite_or_invalid(jnp.stack([u, v], axis=-1), valid)
 
 
 def eucm_unproject(cam, uv, alpha, beta, name: str):
@@ -61,6 +62,8 @@ def eucm_unproject(cam, uv, alpha, beta, name: str):
     alpha = alpha.astype(dtype)
     beta = beta.astype(dtype)
     mx, my = _pixels_to_m(cam, uv, dtype)
+    measurable = jnp.isfinite(mx * mx + my * my)  # squares overflow for huge pixels: invalid, not NaN
+    mx, my = jnp.where(measurable, mx, 0.0), jnp.where(measurable, my, 0.0)
     r2 = mx * mx + my * my
     disc = 1 - (2 * alpha - 1) * beta * r2
     inside = (alpha <= 0.5) | (disc >= 0)
@@ -68,7 +71,7 @@ def eucm_unproject(cam, uv, alpha, beta, name: str):
     ray = jnp.stack([mx, my, mz], axis=-1)
     ray = ray / safe_norm(ray, keepdims=True)
     _, back = eucm_project(cam, ray, alpha, beta, name)
-    return ray, inside & back
+    return finite_or_invalid(ray, inside & back & measurable)
 
 
 def eucm_theta_max(alpha: Array, beta: Array) -> Array:

@@ -10,9 +10,9 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import eps_for, float_dtype, incidence_angle, resolve_dtype, safe_norm, stack_last, theta_over_sin
-from ._base import AbstractCamera, as_coordinates, check_image_size
-from ._domain import first_increasing_limit
+from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_norm, stack_last
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
+from ._domain import first_increasing_limit, solve_with_fallback
 
 THETA_MAX_MARGIN_RAD = 1e-3
 """When rho(theta) has a stationary point theta_s <= pi, the valid domain is [0, theta_s - margin]:
@@ -84,29 +84,33 @@ def solve_theta(
 
     The whole batch is one root-finding problem with a *diagonal* Jacobian, so every Newton step
     is one vectorised polynomial evaluation; it starts from `_initial_guess`. Gradients with
-    respect to ``rho`` and ``k`` are implicit (exact). Returns ``(theta, converged)``;
-    `converged` is a per-element residual check, never a silent default.
+    respect to ``rho`` and ``k`` are implicit (exact). Should Newton fail anywhere (it can cycle
+    near a stationary point of rho, on lenses whose domain ends before pi), the solve is repeated
+    from a bisection (`solve_with_fallback`). Returns ``(theta, converged)``; `converged` is a
+    per-element residual check, never a silent default.
     """
     dtype = rho.dtype
     rtol, atol = _newton_tolerances(dtype)
-    theta0 = _initial_guess(k, jax.lax.stop_gradient(rho), theta_max)
-    sol = optx.root_find(
-        _theta_residual,
-        optx.Newton(rtol=rtol, atol=atol),
-        theta0,
-        args=(k, rho),
-        options=dict(lower=jnp.zeros((), dtype), upper=theta_max.astype(dtype)),
-        max_steps=_MAX_NEWTON_STEPS,
-        throw=False,
-        tags=frozenset({lx.diagonal_tag}),
-    )
-    theta = sol.value
-    scale = jnp.maximum(jnp.abs(rho), 1.0)
-    residual = jnp.abs(rho_of_theta(k, theta) - rho)
-    converged = residual <= 64 * eps_for(dtype) * scale
-    converged = converged & jnp.isfinite(theta)
-    theta = jnp.where(jnp.isfinite(theta), theta, jnp.zeros_like(theta))
-    return theta, converged
+
+    def newton(theta0):
+        sol = optx.root_find(
+            _theta_residual,
+            optx.Newton(rtol=rtol, atol=atol),
+            theta0,
+            args=(k, rho),
+            options=dict(lower=jnp.zeros((), dtype), upper=theta_max.astype(dtype)),
+            max_steps=_MAX_NEWTON_STEPS,
+            throw=False,
+            tags=frozenset({lx.diagonal_tag}),
+        )
+        theta = sol.value
+        scale = jnp.maximum(jnp.abs(rho), 1.0)
+        residual = jnp.abs(rho_of_theta(k, theta) - rho)
+        converged = (residual <= 64 * eps_for(dtype) * scale) & jnp.isfinite(theta)
+        return jnp.where(jnp.isfinite(theta), theta, jnp.zeros_like(theta)), converged
+
+    return solve_with_fallback(newton, rho_of_theta, k, rho, theta_max,
+                               _initial_guess(k, jax.lax.stop_gradient(rho), theta_max))
 
 
 class WoodScapeFisheye(AbstractCamera):
@@ -205,16 +209,14 @@ class WoodScapeFisheye(AbstractCamera):
         x, y, z = p[..., 0], p[..., 1], p[..., 2]
         chi = safe_norm(p[..., :2])
         r = safe_norm(p)
-        nonzero = r > 0
+        nonzero = (r > 0) & jnp.isfinite(r)  # squares overflow beyond ~1e19 (float32): no direction
         theta = incidence_angle(jnp.where(nonzero, chi, 0.0), jnp.where(nonzero, z, 1.0))
-        # rho(θ)/chi = (rho(θ)/θ) · (θ/sin θ) / r: no division by chi, exact and smooth at chi = 0.
-        inv_r = 1.0 / jnp.where(nonzero, r, 1.0)
-        ratio = _rho_over_theta(k, theta) * theta_over_sin(theta) * inv_r
+        # rho(θ)/chi = (rho(θ)/θ) · (θ/chi): smooth at chi = 0, exact near the back axis.
+        theta_over_chi, defined = radial_ratio(theta, chi, r, z)
+        ratio = _rho_over_theta(k, theta) * theta_over_chi
         u = x * ratio + cx
         v = y * ratio * a + cy
-        behind_axis = jnp.sin(theta) <= eps_for(dtype)
-        behind_axis = behind_axis & (theta > 1.0)
-        valid = nonzero & (theta <= self.theta_max(dtype)) & ~behind_axis
+        valid = defined & (theta <= self.theta_max(dtype))
         return jnp.stack([u, v], axis=-1), valid
 
     @eqx.filter_jit
@@ -233,12 +235,14 @@ class WoodScapeFisheye(AbstractCamera):
         x = uv[..., 0] - cx
         y = (uv[..., 1] - cy) / a
         r2 = x * x + y * y
+        measurable = jnp.isfinite(r2)  # squares overflow beyond ~1e19 px (float32): invalid, not NaN
+        r2 = jnp.where(measurable, r2, 0.0)
         rho = jnp.where(r2 > 0, jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)), 0.0)
         # Materialise rho once: otherwise XLA re-fuses it (strided reads of uv) into every consumer.
         rho = jax.lax.optimization_barrier(rho)
         theta_max = self.theta_max(dtype)
         rho_max = rho_of_theta(jax.lax.stop_gradient(k), theta_max)
-        inside = rho <= rho_max
+        inside = rho <= rho_max * (1 + 4 * eps_for(dtype))  # the pixel of theta_max itself, after rounding
         theta, converged = solve_theta(k, jnp.minimum(rho, rho_max), theta_max)
         # sin(θ)/rho, with its first-order Taylor expansion near the principal point.
         tau = jnp.asarray(np.sqrt(eps_for(dtype)) * 100, dtype)
@@ -247,4 +251,4 @@ class WoodScapeFisheye(AbstractCamera):
         taylor = 1.0 / k[0] - k[1] * rho / k[0] ** 3
         s = jnp.where(small, taylor, jnp.sin(theta) / safe_rho)
         ray = stack_last([x * s, y * s, jnp.cos(theta)])
-        return ray, inside & converged
+        return finite_or_invalid(ray, inside & converged & measurable)
