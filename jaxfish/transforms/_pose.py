@@ -6,7 +6,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._numerics import float_dtype, resolve_dtype, stack_last
+from .._numerics import eps_for, float_dtype, resolve_dtype, stack_last
 
 
 def _check_trailing(x: Array, shape: tuple[int, ...], what: str) -> None:
@@ -181,9 +181,19 @@ class Pose(eqx.Module):
 
     def as_carla(self) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 3"]]:
         """``(location, (pitch, yaw, roll) in degrees)`` such that `from_carla` gives this pose back
-        (the pose must be expressed in Unreal's frame). Pitch is in [-90, 90]."""
+        (the pose must be expressed in Unreal's frame). Pitch is in [-90, 90]. At pitch +-90 (gimbal
+        lock: only yaw - roll or yaw + roll is defined) roll is 0 and yaw carries the rotation;
+        values and gradients stay finite."""
         r = self.rotation_matrix
-        pitch = jnp.arcsin(jnp.clip(r[..., 2, 0], -1.0, 1.0))
-        yaw = jnp.arctan2(r[..., 1, 0], r[..., 0, 0])
-        roll = jnp.arctan2(-r[..., 2, 1], r[..., 2, 2])
+        one, zero = jnp.ones_like(r[..., 0, 0]), jnp.zeros_like(r[..., 0, 0])
+        cp2 = r[..., 0, 0] ** 2 + r[..., 1, 0] ** 2
+        lock = cp2 <= eps_for(r.dtype)  # cos(pitch) below ~sqrt(eps)
+        cp = jnp.sqrt(jnp.where(lock, one, cp2))
+        pitch = jnp.where(lock, jnp.sign(r[..., 2, 0]) * (jnp.pi / 2), jnp.arctan2(r[..., 2, 0], cp))
+        free_yaw = jnp.arctan2(jnp.where(lock, zero, r[..., 1, 0]), jnp.where(lock, one, r[..., 0, 0]))
+        # roll = 0 in carla_rotation_matrix leaves column 1 = (-sin yaw, cos yaw, 0)
+        safe01 = jnp.where(lock, -r[..., 0, 1], zero)
+        safe11 = jnp.where(lock, r[..., 1, 1], one)
+        yaw = jnp.where(lock, jnp.arctan2(safe01, safe11), free_yaw)
+        roll = jnp.where(lock, zero, jnp.arctan2(jnp.where(lock, zero, -r[..., 2, 1]), jnp.where(lock, one, r[..., 2, 2])))
         return self.translation, jnp.rad2deg(jnp.stack([pitch, yaw, roll], axis=-1))

@@ -104,6 +104,20 @@ def test_from_carla_matches_get_matrix_and_roundtrips(rot):
     np.testing.assert_allclose(np.asarray(again.as_matrix()), np.asarray(pose.as_matrix()), atol=1e-9)
 
 
+@pytest.mark.parametrize("rot", [(-90, 30, 0), (90, -45, 20), (-90, 170, -60)])
+def test_as_carla_at_gimbal_lock_keeps_the_rotation_and_finite_gradients(rot):
+    """Pitch +-90 with the matrix rounded exactly (a straight-down camera mount): yaw and roll are
+    no longer separable, the rotation must survive (roll 0, yaw carries it) and so must gradients."""
+    r = np.round(np.asarray(jf.Pose.from_carla(jnp.zeros(3), jnp.asarray(rot, jnp.float64)).rotation_matrix), 12)
+    pose = jf.Pose(jnp.asarray(r), jnp.zeros(3))
+    for _, angles in three_ways(lambda p: p.as_carla(), pose):
+        assert angles[2] == 0.0 and abs(abs(angles[0]) - 90.0) < 1e-9
+        again = jf.Pose.from_carla(jnp.zeros(3), jnp.asarray(angles))
+        np.testing.assert_allclose(np.asarray(again.rotation_matrix), r, atol=1e-9)
+    grad = jax.grad(lambda m: jnp.sum(jf.Pose(m, jnp.zeros(3)).as_carla()[1]))(jnp.asarray(r))
+    assert bool(jnp.all(jnp.isfinite(grad)))
+
+
 def test_carla_yaw_turns_towards_unreal_plus_y():
     # Unreal is left-handed: yaw +90 turns x (forward) to +y (right).
     np.testing.assert_allclose(np.asarray(carla_rotation_matrix(0.0, 90.0, 0.0)) @ [1, 0, 0], [0, 1, 0], atol=1e-15)
