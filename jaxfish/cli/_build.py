@@ -31,6 +31,13 @@ def parse_frames(text: str | None) -> list[int] | None:
     return out
 
 
+def _span(frames: list[int]) -> str:
+    """``0-9`` for consecutive frames, else up to 8 of them."""
+    if frames and list(frames) == list(range(frames[0], frames[-1] + 1)):
+        return f"{frames[0]}-{frames[-1]}" if len(frames) > 1 else str(frames[0])
+    return ", ".join(map(str, frames[:8])) + (" ..." if len(frames) > 8 else "") if frames else "none"
+
+
 def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
               workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
               motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1):
@@ -41,6 +48,11 @@ def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, sch
     from ..io import CaptureReader
 
     reader = CaptureReader(capture_dir)
+    if frames is not None:  # bad input, before anything is written (a listed frame that is broken fails alone)
+        unknown = sorted(set(frames) - set(reader.frames))
+        if unknown:
+            raise fail(f"--frames: {', '.join(map(str, unknown[:5]))}{' ...' if len(unknown) > 5 else ''} not in "
+                       f"{Path(capture_dir) / 'capture.json'} (its frames: {_span(reader.frames)})")
     total = len(frames) if frames is not None else len(reader.frames)
     options = BuildOptions(backward_flow=backward_flow, bev=bev, motion_threshold_m=motion_threshold_m,
                            png_level=png_level, write_threads=write_threads, batch_frames=batch_frames)

@@ -38,7 +38,10 @@ def test_build_exits_1_and_names_the_broken_file(capture, tmp_path):
     assert "sample 00001 failed" in result.output and "ego.json" in result.output
 
 
-def test_build_rejects_bad_arguments(tmp_path):
+def test_build_rejects_bad_arguments(capture, tmp_path):
     r = CliRunner().invoke(app, ["build", str(tmp_path / "nope"), str(tmp_path / "out")])
     assert r.exit_code == 2 and "not found" in r.output
+    r = CliRunner().invoke(app, ["build", str(capture), str(tmp_path / "out"), "--frames", "1,9"])
+    assert r.exit_code == 2 and "9 not in" in r.output and "frames: 0-1" in r.output, r.output
+    assert not (tmp_path / "out").exists()  # bad input writes nothing
     assert parse_frames("0,2,5-7") == [0, 2, 5, 6, 7] and parse_frames(None) is None
