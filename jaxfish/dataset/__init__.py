@@ -12,6 +12,7 @@ from ._build import clear_worker_cache as clear_worker_cache
 from ._build import has_bev as has_bev
 from ._build import is_complete as is_complete
 from ._build import local_cluster as local_cluster
+from ._build import remove_sample_files as remove_sample_files
 from ._build import remove_stale_temporaries as remove_stale_temporaries
 from ._contact import CONTACT_COLUMNS as CONTACT_COLUMNS
 from ._contact import CONTACT_ROWS as CONTACT_ROWS

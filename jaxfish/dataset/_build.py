@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import JaxfishError
-from ._layout import BEV_CAMERA, FISHEYE_CAMERAS, LAYOUT_VERSION, sample_id
+from ._layout import BEV_CAMERA, FISHEYE_CAMERAS, LAYOUT, LAYOUT_VERSION, sample_id
 from ._runtime import tune_allocator
 
 DONE_DIR = ".done"
@@ -200,11 +200,26 @@ def _sample_extras(reader, frame: int, out: Path, sid: str) -> list[Path]:
 
 
 def has_bev(reader) -> bool:
-    """Whether a capture has a BEV top-view camera (``sensors.json`` field ``bev``)."""
-    try:
-        return "bev" in reader.sensors()
-    except JaxfishError:
-        return False
+    """Whether a capture has a BEV top-view camera (``sensors.json`` field ``bev``); a missing or
+    malformed ``sensors.json`` raises `jaxfish.io.CaptureError` (it never silently drops the BEV)."""
+    return "bev" in reader.sensors()
+
+
+_BACKWARD_FLOW_PATTERNS = ("optical_flow_backward/raw_data/{sample}_{camera}.flo",
+                           "optical_flow_backward/color_coded/{sample}_{camera}.png")
+
+
+def remove_sample_files(out_dir: str | os.PathLike, sample: str) -> int:
+    """Delete every file of ``sample`` that the layout names (`LAYOUT`, backward flow included) and
+    its completion marker; returns how many. A sample that fails leaves nothing half-written."""
+    out = Path(out_dir)
+    patterns = [e["pattern"] for e in LAYOUT] + list(_BACKWARD_FLOW_PATTERNS) + [f"{DONE_DIR}/{{sample}}.json"]
+    n = 0
+    for pattern in patterns:
+        for p in out.glob(pattern.replace("{camera}", "*").replace("{sample}", sample)):
+            p.unlink(missing_ok=True)
+            n += 1
+    return n
 
 
 def build_sample(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, frame: int,
@@ -267,6 +282,7 @@ def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[
         else:
             pending.append(pool.submit(fn, *args, **kwargs))
 
+    failed = True
     try:
         first = None
         for cam, res in zip(cams, results, strict=True):
@@ -288,11 +304,14 @@ def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[
         write(_sample_extras, reader, frame, out, sid)
         for f in pending:
             written.extend(f.result())
+        failed = False
     finally:
         if pool is not None:
             for f in pending:
                 f.cancel()
             pool.shutdown(wait=True)
+        if failed:  # the writers have stopped: remove what this sample wrote (the error propagates)
+            remove_sample_files(out, sid)
     files = {p.relative_to(out).as_posix(): _sha256(p) for p in sorted(set(written))}
     marker = {"sample": sid, "frame": frame, "layout_version": LAYOUT_VERSION, "files": dict(sorted(files.items()))}
     atomic_write_text(out / DONE_DIR / f"{sid}.json", json.dumps(marker, indent=1) + "\n")
@@ -411,6 +430,9 @@ def build_dataset(
     options = options or BuildOptions()
     start = time.perf_counter()
     reader = CaptureReader(capture_dir)  # a missing / malformed header stops the build here
+    reader.rig()  # so do the calibrations and (for the BEV) sensors.json, before anything is written
+    if options.bev:
+        has_bev(reader)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     available = reader.frames

@@ -136,10 +136,11 @@ def write_dataset_files(reader, out_dir: str | os.PathLike, options: BuildOption
     options = options or BuildOptions()
     out = Path(out_dir)
     paths = []
+    reader.rig()  # every calibration valid before one is copied (never a broken file over a good one)
+    manifest = dataset_manifest(reader, out, options)
     for cam in reader.cameras:
         src = reader.root / "calibration" / f"{cam}.json"
         paths.append(atomic_write_bytes(out / "calibration_data" / f"{cam}.json", src.read_bytes()))
-    manifest = dataset_manifest(reader, out, options)
     if manifest["conventions"]["bev"] is not None:
         paths.append(atomic_write_text(out / "calibration_data" / f"{BEV_CAMERA}.json",
                                        json.dumps(manifest["conventions"]["bev"], indent=1) + "\n"))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import json
+import math
 import os
 import threading
 from collections.abc import Callable, Mapping
@@ -18,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from .._errors import JaxfishError
+from .._errors import ImageError, JaxfishError
 from ..calibration import Calibration
 from ..scene import (
     RADAR_DTYPE,
@@ -110,27 +111,42 @@ def write_images(directory: Path, images: CameraImages, instant: str) -> None:
 
 
 def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = True,
-                reuse: tuple[str, ...] | None = None) -> CameraImages:
+                reuse: tuple[str, ...] | None = None, size: tuple[int, int] | None = None) -> CameraImages:
     """Read back what `write_images` wrote (RGB uint8, depth metres float32, tags, actor ids).
     ``actor_ids=False`` skips the instance PNG (`CameraImages.actor_id` is then None): the ground
     truth never reads it (instances come from the 3D boxes). ``reuse``: a key naming the sensor
     (e.g. ``(capture root, camera, face)``) under which decoded ``curr`` images are kept, so that
     a later ``prev`` image that is a byte copy of them (consecutive ticks: see `CaptureReader`) is
-    not decoded again; the arrays returned are then read-only."""
+    not decoded again; the arrays returned are then read-only. ``size``: the ``(H, W)`` every image
+    must have. A wrong size or pixel type raises `CaptureError` naming the file."""
     if instant not in INSTANTS:
         raise CaptureError(f"{directory}: instant must be one of {INSTANTS}, got {instant!r}")
 
     def load(kind: str, decode):
         path = directory / f"{kind}_{instant}.png"
-        return decode(read_image(path)) if reuse is None else _decoded_reusing(path, reuse + (kind,), instant, decode)
+        checked = _checked(decode, path, size)
+        return checked(read_image(path)) if reuse is None else _decoded_reusing(path, reuse + (kind,), instant, checked)
 
     rgb = load("rgb", bgra_to_rgb)
     depth = load("depth", decode_depth)
     sem = load("semantic", decode_semantic)
     if not actor_ids:
         return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=None)  # type: ignore[arg-type]
-    _, ids = decode_instance(read_image(directory / f"instance_{instant}.png"))
+    _, ids = _checked(decode_instance, directory / f"instance_{instant}.png", size)(read_image(directory / f"instance_{instant}.png"))
     return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=ids.astype(np.int32))
+
+
+def _checked(decode, path: Path, size: tuple[int, int] | None):
+    """``decode`` of the pixels of ``path``, with its size checked and its errors naming the file."""
+    def run(pixels: np.ndarray):
+        if size is not None and tuple(pixels.shape[:2]) != tuple(size):
+            raise CaptureError(f"{path}: image is {pixels.shape[1]}x{pixels.shape[0]}, expected {size[1]}x{size[0]} "
+                               "(capture.json 'face_size' / sensors.json)")
+        try:
+            return decode(pixels)
+        except ImageError as e:
+            raise CaptureError(f"{path}: {e}") from None
+    return run
 
 
 # Decoded ``curr`` images by sensor (the last one read per key), with their file bytes: one
@@ -313,6 +329,85 @@ def steps_per_frame(rig: Mapping[str, Calibration]) -> int:
     return len(rig) + 3
 
 
+CARLA_TAG_TABLES = ("0.9.10", "0.9.14")
+"""Values of ``capture.json``'s ``carla_semantic_tags``: the tag table of CARLA 0.9.10-0.9.13 or of 0.9.14+."""
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _check_vector(record: dict[str, Any], key: str, path: Path, field: str) -> list[float]:
+    v = record.get(key)
+    if not (isinstance(v, list) and len(v) == 3 and all(_is_number(x) for x in v)):
+        raise CaptureError(f"{path}: field '{field}': expected 3 finite numbers, got {v!r}")
+    return v
+
+
+def _check_transform(record: dict[str, Any], key: str, path: Path, field: str) -> None:
+    t = record.get(key)
+    if not isinstance(t, dict):
+        raise CaptureError(f"{path}: field '{field}': expected {{'location': [x, y, z], 'rotation': [pitch, yaw, roll]}}")
+    _check_vector(t, "location", path, f"{field}.location")
+    _check_vector(t, "rotation", path, f"{field}.rotation")
+
+
+def _check_actors(actors: list[Any], path: Path) -> None:
+    """The fields of ``actors.json`` records that the ground truth uses (docs/capture_layout.md)."""
+    seen: set[int] = set()
+    for i, a in enumerate(actors):
+        where = f"actors[{i}]"
+        if not isinstance(a, dict):
+            raise CaptureError(f"{path}: field '{where}': expected an actor record")
+        aid = a.get("id")
+        if not isinstance(aid, int) or isinstance(aid, bool) or aid <= 0:
+            raise CaptureError(f"{path}: field '{where}.id': expected a positive integer, got {aid!r}")
+        if aid in seen:
+            raise CaptureError(f"{path}: field '{where}.id': actor id {aid} appears twice")
+        seen.add(aid)
+        where = f"actors[{i}] (id {aid})"
+        box = a.get("bounding_box")
+        if not isinstance(box, dict):
+            raise CaptureError(f"{path}: field '{where}.bounding_box': expected {{'location': [...], 'extent': [...]}}")
+        _check_vector(box, "location", path, f"{where}.bounding_box.location")
+        extent = _check_vector(box, "extent", path, f"{where}.bounding_box.extent")
+        if min(extent) < 0:
+            raise CaptureError(f"{path}: field '{where}.bounding_box.extent': half sizes must be >= 0, got {extent}")
+        if max(extent) == 0 and a.get("category") != "two_wheeler":  # CARLA's zero two-wheeler axes are fixed
+            raise CaptureError(f"{path}: field '{where}.bounding_box.extent': zero-size box {extent}")
+        for key in ("transform_prev", "transform"):
+            _check_transform(a, key, path, f"{where}.{key}")
+
+
+def _check_header(meta: dict[str, Any], header: Path) -> None:
+    """Types and values of ``capture.json``'s fields (each problem names the field)."""
+    from ..reprojection import FIVE_FACES
+
+    def bad(field: str, expected: str) -> CaptureError:
+        return CaptureError(f"{header}: field '{field}': expected {expected}, got {meta.get(field)!r}")
+
+    if meta["version"] != CAPTURE_VERSION:
+        raise bad("version", f"{CAPTURE_VERSION} (the capture layout this jaxfish reads)")
+    frames = meta["frames"]
+    if not isinstance(frames, list) or not all(isinstance(f, int) and not isinstance(f, bool) and f >= 0 for f in frames):
+        raise bad("frames", "a list of non-negative integers")
+    if len(set(frames)) != len(frames):
+        raise bad("frames", "distinct frame numbers")
+    cams = meta["cameras"]
+    if not isinstance(cams, list) or not all(isinstance(c, str) and c and "/" not in c for c in cams):
+        raise bad("cameras", "a list of camera names")
+    faces = meta["faces"]
+    known = FIVE_FACES + ("back",)
+    if not isinstance(faces, list) or not faces or not all(f in known for f in faces) or len(set(faces)) != len(faces):
+        raise bad("faces", f"distinct cube faces of {known}")
+    size = meta.get("face_size", 1)
+    if not isinstance(size, int) or isinstance(size, bool) or size <= 0:
+        raise bad("face_size", "a positive number of pixels")
+    tags = meta.get("carla_semantic_tags", "0.9.10")
+    if tags not in CARLA_TAG_TABLES:
+        raise bad("carla_semantic_tags", f"one of {CARLA_TAG_TABLES}")
+
+
 class CaptureReader:
     """Read a capture directory (any source) laid out as ``docs/capture_layout.md``.
 
@@ -337,6 +432,7 @@ class CaptureReader:
                 raise CaptureError(f"{header}: field '{key}' missing")
         if self.meta["format"] != CAPTURE_FORMAT:
             raise CaptureError(f"{header}: field 'format' is {self.meta['format']!r}, expected {CAPTURE_FORMAT!r}")
+        _check_header(self.meta, header)
 
     @property
     def frames(self) -> list[int]:
@@ -355,6 +451,10 @@ class CaptureReader:
 
     def rig(self) -> dict[str, Calibration]:
         """The calibration of every fisheye camera (``calibration/*.json``)."""
+        for name in self.cameras:
+            path = self.root / "calibration" / f"{name}.json"
+            if not path.is_file():
+                raise CaptureError(f"{self.root / 'capture.json'}: field 'cameras' lists {name!r} but {path} is missing")
         return load_rig(self.root / "calibration", names=tuple(self.cameras))
 
     def sensors(self) -> dict[str, Any]:
@@ -376,17 +476,38 @@ class CaptureReader:
         return d
 
     def ego(self, frame: int) -> dict[str, Any]:
-        """``ego.json`` of a frame (CARLA transforms at t-1 and t, velocity, acceleration)."""
-        return self._read_json(self._frame(frame) / "ego.json")
+        """``ego.json`` of a frame (CARLA transforms at t-1 and t, velocity, acceleration); a
+        missing or non-finite field raises `CaptureError` naming the file and field."""
+        path = self._frame(frame) / "ego.json"
+        ego = self._read_json(path)
+        if not isinstance(ego, dict):
+            raise CaptureError(f"{path}: field '<root>': expected an object")
+        for key in ("transform_prev", "transform"):
+            _check_transform(ego, key, path, key)
+        for key in ("velocity", "acceleration", "angular_velocity"):
+            _check_vector(ego, key, path, key)
+        for key in ("timestamp_s", "timestamp_prev_s"):
+            if not _is_number(ego.get(key)):
+                raise CaptureError(f"{path}: field '{key}': expected a finite number, got {ego.get(key)!r}")
+        return ego
 
     def actors(self, frame: int) -> list[dict[str, Any]]:
-        """The actors of a frame (``actors.json``)."""
-        return self._read_json(self._frame(frame) / "actors.json")["actors"]
+        """The actors of a frame (``actors.json``); a malformed record (missing or non-finite pose
+        or box, negative or zero-size box, repeated id) raises `CaptureError` naming the file, the
+        actor and the field."""
+        path = self._frame(frame) / "actors.json"
+        doc = self._read_json(path)
+        if not isinstance(doc, dict) or not isinstance(doc.get("actors"), list):
+            raise CaptureError(f"{path}: field 'actors': expected a list of actor records")
+        _check_actors(doc["actors"], path)
+        return doc["actors"]
 
     def face(self, frame: int, camera: str, face: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """One cube face's images at ``"prev"`` (t-1) or ``"curr"`` (t) (``actor_ids``: see `read_images`)."""
         reuse = None if self._reuse_key is None else self._reuse_key + (camera, face)
-        return read_images(self._frame(frame) / "cameras" / camera / face, instant, actor_ids=actor_ids, reuse=reuse)
+        size = self.meta.get("face_size")
+        return read_images(self._frame(frame) / "cameras" / camera / face, instant, actor_ids=actor_ids, reuse=reuse,
+                           size=None if size is None else (size, size))
 
     def faces_stack(self, frame: int, camera: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """All faces of a camera stacked on a leading face axis (the `CubeRig` order of `faces`);
@@ -399,25 +520,37 @@ class CaptureReader:
 
     def dvs(self, frame: int, camera: str, face: str) -> np.ndarray:
         """DVS events of a face between t-1 and t (`DVS_EVENT_DTYPE`, t in ns)."""
-        return self._npy(self._frame(frame) / "cameras" / camera / face / "dvs.npy")
+        from ._carla import DVS_EVENT_DTYPE
+
+        return self._npy(self._frame(frame) / "cameras" / camera / face / "dvs.npy", dtype=DVS_EVENT_DTYPE)
 
     def view(self, frame: int, name: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """The ``"bev"`` or ``"front"`` camera's images (``actor_ids``: see `read_images`)."""
         reuse = None if self._reuse_key is None else self._reuse_key + (name,)
-        return read_images(self._frame(frame) / name, instant, actor_ids=actor_ids, reuse=reuse)
+        spec = self.sensors().get(name)
+        size = (int(spec["height"]), int(spec["width"])) if isinstance(spec, dict) and "width" in spec and "height" in spec else None
+        return read_images(self._frame(frame) / name, instant, actor_ids=actor_ids, reuse=reuse, size=size)
 
     def height(self, frame: int, name: str = "bev") -> np.ndarray:
         """Height map (metres above the ground, float32) of the ``"bev"`` or ``"front"`` view at t."""
         return read_image(self._frame(frame) / name / "height_curr.exr")[..., 0]
 
-    def _npy(self, path: Path) -> np.ndarray:
+    def _npy(self, path: Path, dtype=None, columns: int | None = None) -> np.ndarray:
         if not path.is_file():
             raise CaptureError(f"{path}: file missing")
-        return np.load(path, allow_pickle=False)
+        try:
+            a = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as e:
+            raise CaptureError(f"{path}: not a readable .npy array ({e})") from None
+        if dtype is not None and a.dtype != np.dtype(dtype):
+            raise CaptureError(f"{path}: expected dtype {np.dtype(dtype)}, got {a.dtype}")
+        if columns is not None and (a.ndim != 2 or a.shape[1] != columns):
+            raise CaptureError(f"{path}: expected an (N, {columns}) array, got shape {a.shape}")
+        return a
 
     def lidar(self, frame: int) -> np.ndarray:
         """Lidar points ``(N, 4)`` float32 ``x, y, z, intensity`` (sensor frame, Unreal axes)."""
-        return self._npy(self._frame(frame) / "lidar.npy")
+        return self._npy(self._frame(frame) / "lidar.npy", columns=4)
 
     def semantic_lidar(self, frame: int) -> np.ndarray:
         """Semantic lidar points (CARLA's ``SemanticLidarDetection`` dtype)."""

@@ -334,8 +334,7 @@ def _frame_motion(reader, frame: int, pad: int | None = None, actors: list | Non
 
 
 def _carla_version(reader, carla_version: str | None) -> str:
-    tags = str(reader.meta.get("carla_semantic_tags", "0.9.10"))
-    return carla_version or ("0.9.10" if tags in ("0.9.10", "0.9.11", "0.9.12", "0.9.13") else "0.9.14")
+    return carla_version or str(reader.meta.get("carla_semantic_tags", "0.9.10"))  # checked by CaptureReader
 
 
 def capture_ground_truth(reader, frame: int, camera: str, *, lut=None, rays=None, event_map=None,

@@ -1,0 +1,131 @@
+"""Bad capture input: every problem names the file and field, a failing sample leaves none of its
+files behind, and problems of the whole capture stop the build before anything is written."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxfish import CalibrationError
+from jaxfish.dataset import build_dataset, remove_sample_files
+from jaxfish.io import CaptureError, write_image
+
+
+def _copy(capture: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "capture"
+    shutil.copytree(capture, dst)
+    return dst
+
+
+def _edit_json(path: Path, edit) -> None:
+    doc = json.loads(path.read_text())
+    edit(doc)
+    path.write_text(json.dumps(doc))
+
+
+def _first_actor(doc):
+    return next(a for a in doc["actors"] if not a.get("is_ego"))
+
+
+def _wrong_size_face(cap: Path) -> None:
+    write_image(cap / "frames/000000/cameras/FV/front/rgb_curr.png", np.zeros((16, 16, 4), np.uint8))
+
+
+def _gray_depth(cap: Path) -> None:
+    size = json.loads((cap / "capture.json").read_text())["face_size"]
+    write_image(cap / "frames/000000/cameras/FV/front/depth_curr.png", np.zeros((size, size), np.uint8))
+
+
+def _float_dvs(cap: Path) -> None:
+    np.save(cap / "frames/000000/cameras/FV/front/dvs.npy", np.zeros((5, 4), np.float32))
+
+
+def _corrupt_lidar(cap: Path) -> None:
+    (cap / "frames/000000/lidar.npy").write_bytes(b"garbage")
+
+
+# (mutation of frame 0, text the reason must hold: the file and the field)
+SAMPLE_CASES = {
+    "wrong_size_face": (_wrong_size_face, ["FV/front/rgb_curr.png", "16x16", "expected"]),
+    "gray_depth": (_gray_depth, ["FV/front/depth_curr.png", "decode_depth"]),
+    "float_dvs": (_float_dvs, ["FV/front/dvs.npy", "dtype"]),
+    "corrupt_lidar": (_corrupt_lidar, ["lidar.npy", "not a readable .npy"]),
+    "nan_ego": (lambda c: _edit_json(c / "frames/000000/ego.json",
+                                     lambda d: d["transform"]["rotation"].__setitem__(1, float("nan"))),
+                ["ego.json", "transform.rotation", "finite"]),
+    "zero_box": (lambda c: _edit_json(c / "frames/000000/actors.json",
+                                      lambda d: _first_actor(d)["bounding_box"].__setitem__("extent", [0, 0, 0])),
+                 ["actors.json", "bounding_box.extent", "zero-size box"]),
+    "negative_box": (lambda c: _edit_json(c / "frames/000000/actors.json",
+                                          lambda d: _first_actor(d)["bounding_box"].__setitem__("extent", [-2, 1, 1])),
+                     ["actors.json", "bounding_box.extent", ">= 0"]),
+    "duplicate_id": (lambda c: _edit_json(c / "frames/000000/actors.json",
+                                          lambda d: d["actors"][-1].__setitem__("id", d["actors"][0]["id"])),
+                     ["actors.json", ".id", "appears twice"]),
+    "no_actors_list": (lambda c: (c / "frames/000000/actors.json").write_text("{}"), ["actors.json", "field 'actors'"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(SAMPLE_CASES))
+def test_a_bad_sample_is_named_and_leaves_none_of_its_files(small_capture, tmp_path, case):
+    mutate, expected = SAMPLE_CASES[case]
+    cap = _copy(small_capture, tmp_path)
+    mutate(cap)
+    out = tmp_path / "out"
+    report = build_dataset(cap, out, frames=[0])
+    assert list(report.failed) == ["00000"], report.summary()
+    reason = report.failed["00000"]
+    for text in expected:
+        assert text in reason, (text, reason)
+    left = [p for p in out.rglob("00000*") if p.is_file()]
+    assert not left, f"half-written sample: {left[:3]}"
+
+
+def test_remove_sample_files_removes_exactly_one_sample(reference_build, tmp_path):
+    out = tmp_path / "copy"
+    shutil.copytree(reference_build[0], out)
+    before = {p for p in out.rglob("*") if p.is_file()}
+    marker = json.loads((out / ".done" / "00001.json").read_text())
+    assert remove_sample_files(out, "00001") == len(marker["files"]) + 1  # its files and its marker
+    after = {p for p in out.rglob("*") if p.is_file()}
+    assert {p.relative_to(out).as_posix() for p in before - after} == set(marker["files"]) | {".done/00001.json"}
+
+
+# Problems of the whole capture: the build stops before writing anything (CLI: exit 2).
+CAPTURE_CASES = {
+    "sensors_json": (lambda c: (c / "sensors.json").write_text("{"), CaptureError, ["sensors.json", "invalid JSON"]),
+    "tag_table": (lambda c: _edit_json(c / "capture.json", lambda d: d.__setitem__("carla_semantic_tags", "banana")),
+                  CaptureError, ["capture.json", "carla_semantic_tags"]),
+    "frames_type": (lambda c: _edit_json(c / "capture.json", lambda d: d.__setitem__("frames", "0,1")),
+                    CaptureError, ["capture.json", "'frames'"]),
+    "unknown_camera": (lambda c: _edit_json(c / "capture.json", lambda d: d["cameras"].append("XX")),
+                       CaptureError, ["capture.json", "'cameras'", "XX.json"]),
+    "calibration": (lambda c: (c / "calibration/FV.json").write_text('{"extrinsic": {'), CalibrationError, ["FV.json"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CAPTURE_CASES))
+def test_a_bad_capture_stops_the_build_before_writing(small_capture, tmp_path, case):
+    mutate, error, expected = CAPTURE_CASES[case]
+    cap = _copy(small_capture, tmp_path)
+    mutate(cap)
+    with pytest.raises(error) as info:
+        build_dataset(cap, tmp_path / "out")
+    for text in expected:
+        assert text in str(info.value), (text, str(info.value))
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_bad_calibration_never_replaces_a_finished_datasets_copy(small_capture, reference_build, tmp_path):
+    out = tmp_path / "done"
+    shutil.copytree(reference_build[0], out)
+    good = (out / "calibration_data/FV.json").read_bytes()
+    cap = _copy(small_capture, tmp_path)
+    (cap / "calibration/FV.json").write_text('{"extrinsic": {')
+    with pytest.raises(CalibrationError):
+        build_dataset(cap, out)
+    assert (out / "calibration_data/FV.json").read_bytes() == good
