@@ -6,6 +6,7 @@ import sys
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 app = typer.Typer(
     name="jaxfish",
@@ -17,10 +18,26 @@ app = typer.Typer(
 console = Console(stderr=True)
 
 
+def print_error(message: object) -> None:
+    """``error: message`` on one line of stderr: never hard-wrapped at 80 columns (rich's width
+    without a terminal: logs and pipes would split paths), never read as rich markup."""
+    console.print(f"[bold red]error:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+
+
 def fail(message: str, code: int = 2) -> typer.Exit:
     """Print ``error: message`` to stderr and return an exit exception (``raise fail(...)``)."""
-    console.print(f"[bold red]error:[/] {message}", highlight=False)
+    print_error(message)
     return typer.Exit(code)
+
+
+def check_outputs(**paths: object) -> None:
+    """Refuse output paths that are directories before any work (``--out DIR`` would fail only at
+    the end, after other outputs were written)."""
+    from pathlib import Path
+
+    for option, path in paths.items():
+        if path is not None and Path(str(path)).is_dir():
+            raise fail(f"--{option.replace('_', '-')} {path}: is a directory, expected a file path")
 
 
 def main() -> None:
@@ -29,8 +46,8 @@ def main() -> None:
 
     try:
         app()
-    except (JaxfishError, FileNotFoundError, IsADirectoryError, PermissionError) as e:
-        console.print(f"[bold red]error:[/] {e}", highlight=False)
+    except (JaxfishError, OSError) as e:  # a missing, existing, unreadable or unwritable path
+        print_error(e)
         sys.exit(2)
 
 

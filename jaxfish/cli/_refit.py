@@ -9,7 +9,7 @@ from typing import Any
 
 import typer
 
-from ._app import app, console, fail
+from ._app import app, check_outputs, console, fail
 
 
 def _write_json(path: Path, data: Any) -> None:
@@ -61,6 +61,7 @@ def refit(
     report: Path | None = typer.Option(None, "--report", "-r", help="Report JSON (residuals, covariance, poses)."),
 ) -> None:
     """Fit a lens model's intrinsics (and poses) to 2D-3D correspondences; write the calibration and a report."""
+    check_outputs(out=out, report=report)
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -83,6 +84,10 @@ def refit(
     else:
         if model is None or width is None or height is None:
             raise fail("without --calibration, give --model, --width and --height")
+        if width <= 0 or height <= 0:
+            raise fail(f"--width/--height must be positive numbers of pixels, got {width}x{height}")
+        if focal is not None and not (math.isfinite(focal) and focal > 0):
+            raise fail(f"--focal must be a positive number of pixels per radian, got {focal}")
         camera = _initial_camera(model, width, height, focal)
         mount = Pose.identity(dtype=np.float64)
     poses = None
@@ -149,6 +154,7 @@ def convert(
     report: Path | None = typer.Option(None, "--report", "-r", help="Error report JSON."),
 ) -> None:
     """Convert a calibration to another lens model, reporting the max and RMS reprojection difference."""
+    check_outputs(out=out, report=report)
     import jax
 
     jax.config.update("jax_enable_x64", True)

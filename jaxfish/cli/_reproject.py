@@ -14,7 +14,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, console, fail
+from ._app import app, check_outputs, console, fail
 
 _KINDS = ("rgb", "label", "depth")
 _OUT_EXTS = (".png", ".exr", ".npy")
@@ -152,6 +152,7 @@ def cube2fisheye(
     instant: str = typer.Option("curr", "--instant", help="With a capture's camera directory: curr (t) or prev (t-1)."),
 ) -> None:
     """Make a fisheye image (rgb, label or depth) from CARLA's perspective cube faces."""
+    check_outputs(out=out)
     _check_options(kind, out, supersample)
     if instant not in ("curr", "prev"):
         raise fail(f"--instant must be curr or prev, got {instant!r}")
@@ -243,11 +244,18 @@ def reproject(
     supersample: int = typer.Option(1, "--supersample", help="N x N rays per output pixel."),
 ) -> None:
     """Reproject a fisheye image to another camera model (e.g. rectify it to a pinhole view)."""
+    check_outputs(out=out)
     _check_options(kind, out, supersample)
     if to not in ("pinhole", "equirectangular", "cylindrical", "fisheye"):
         raise fail(f"--to must be pinhole, equirectangular, cylindrical or fisheye, got {to!r}")
     if to == "fisheye" and target_calibration is None:
         raise fail("--to fisheye needs --target-calibration")
+    for name, angle in (("--yaw", yaw), ("--pitch", pitch), ("--roll", roll)):
+        if not math.isfinite(angle):
+            raise fail(f"{name} must be a finite number of degrees, got {angle}")
+    for name, size in (("--width", width), ("--height", height)):
+        if size is not None and size <= 0:
+            raise fail(f"{name} must be a positive number of pixels, got {size}")
 
     def body():
         import jax.numpy as jnp

@@ -15,6 +15,7 @@ import concurrent.futures
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import pickle
 import threading
@@ -72,6 +73,9 @@ class BuildOptions:
             raise DatasetError(f"BuildOptions: write_threads must be >= 0, got {self.write_threads}")
         if not isinstance(self.batch_frames, int) or self.batch_frames < 1:
             raise DatasetError(f"BuildOptions: batch_frames must be an integer >= 1, got {self.batch_frames!r}")
+        m = self.motion_threshold_m
+        if isinstance(m, bool) or not isinstance(m, (int, float)) or not math.isfinite(m) or m < 0:
+            raise DatasetError(f"BuildOptions: motion_threshold_m must be a finite number of metres >= 0, got {m!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """The options that shape the output (``write_threads``, ``tune_allocator`` and, on CPU,

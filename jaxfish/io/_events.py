@@ -28,9 +28,19 @@ def carla_events(x, y, t_ns, polarity) -> np.ndarray:
     return ev
 
 
+def _structured_events(events: np.ndarray, where: object) -> np.ndarray:
+    """``events`` as a 1-D array with CARLA's DVS fields (x, y, t, pol); a plain numeric array (its
+    cast to a record dtype never fails, it would invent events) raises `ImageError`."""
+    ev = np.asarray(events)
+    if ev.dtype.names is None or set(ev.dtype.names) != set(DVS_EVENT_DTYPE.names) or ev.ndim != 1:
+        raise ImageError(f"{where}: events must be a 1-D array with CARLA's DVS fields {DVS_EVENT_DTYPE.names} "
+                         f"(DVS_EVENT_DTYPE), got {ev.dtype} of shape {ev.shape}")
+    return ev
+
+
 def carla_to_tonic(events: np.ndarray) -> np.ndarray:
     """CARLA events (t in ns) -> tonic's ``x, y, t, p`` (t in **µs**, floor division; p 1 / 0)."""
-    ev = np.asarray(events)
+    ev = _structured_events(events, "carla_to_tonic")
     out = np.empty(ev.shape[0], TONIC_EVENT_DTYPE)
     out["x"], out["y"] = ev["x"], ev["y"]
     out["t"] = np.floor_divide(ev["t"].astype(np.int64), 1000)
@@ -41,12 +51,9 @@ def carla_to_tonic(events: np.ndarray) -> np.ndarray:
 def write_events_npy(path: str | os.PathLike, events: np.ndarray) -> Path:
     """Write events in CARLA's dtype (t in ns) as ``.npy`` (atomic; no pickle)."""
     path = Path(path)
-    ev = np.asarray(events)
+    ev = _structured_events(events, path)
     if ev.dtype != DVS_EVENT_DTYPE:
-        try:
-            ev = ev.astype(DVS_EVENT_DTYPE)
-        except (TypeError, ValueError) as e:
-            raise ImageError(f"{path}: events must have CARLA's DVS dtype {DVS_EVENT_DTYPE}, got {ev.dtype}") from e
+        ev = ev.astype(DVS_EVENT_DTYPE)  # same fields, other widths or order
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.save(fh, np.ascontiguousarray(ev), allow_pickle=False)
     return path
@@ -57,7 +64,10 @@ def read_events_npy(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise ImageError(f"{path}: file missing")
-    ev = np.load(path, allow_pickle=False)
+    try:
+        ev = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise ImageError(f"{path}: not a readable .npy array ({e})") from None
     if ev.dtype != DVS_EVENT_DTYPE:
         raise ImageError(f"{path}: dtype {ev.dtype} is not CARLA's DVS dtype {DVS_EVENT_DTYPE}")
     return ev
@@ -67,7 +77,7 @@ def write_events_tonic(path: str | os.PathLike, events: np.ndarray, *, width: in
     """Write CARLA events as a tonic-compatible ``.npz``: ``events`` (`TONIC_EVENT_DTYPE`, t in
     µs), ``time_unit = "us"`` and ``sensor_size = (width, height, 2)``."""
     path = Path(path)
-    ton = carla_to_tonic(events)
+    ton = carla_to_tonic(_structured_events(events, path))
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, events=ton, time_unit=np.asarray("us"), sensor_size=np.asarray([width, height, 2], np.int64))
     return path

@@ -97,3 +97,26 @@ def test_refit_input_errors(tmp_path):
     good.write_text(json.dumps({"frame": "camera", "views": [{"points": [[0, 0, 1]], "pixels": [[1, 2]]}]}))
     result = CliRunner().invoke(app, ["refit", str(good), "-o", str(tmp_path / "x.json")])
     assert result.exit_code == 2 and "--model" in result.output
+
+
+def test_refit_and_convert_reject_bad_numbers_and_outputs_first(tmp_path):
+    corr, _, _, _ = scene(noise_px=0.2)
+    save_correspondences(corr, tmp_path / "c.json", frame="board")
+    runner = CliRunner()
+    for args, text in ((["--width", "0", "--height", "0"], "must be positive"),
+                       (["--width", "64", "--height", "48", "--focal", "nan"], "--focal must be")):
+        result = runner.invoke(app, ["refit", str(tmp_path / "c.json"), "--model", "kb", *args, "-o", str(tmp_path / "o.json")])
+        assert result.exit_code == 2 and text in result.output, result.output
+    (tmp_path / "rep").mkdir()
+    src = shared_path("calibration/woodscape/FV.json")
+    result = runner.invoke(app, ["convert", str(src), "--to", "kb", "-o", str(tmp_path / "kb.json"), "-r", str(tmp_path / "rep")])
+    assert result.exit_code == 2 and "is a directory" in result.output
+    assert not (tmp_path / "o.json").exists() and not (tmp_path / "kb.json").exists()  # nothing half-done
+
+
+def test_build_options_reject_a_non_finite_motion_threshold():
+    from jaxfish.dataset import BuildOptions, DatasetError
+
+    for bad in (float("nan"), float("inf"), -0.1):
+        with pytest.raises(DatasetError, match="motion_threshold_m"):
+            BuildOptions(motion_threshold_m=bad)

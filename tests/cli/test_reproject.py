@@ -196,3 +196,31 @@ def test_reproject_to_and_from_other_lens_models(tmp_path, small_calibration):
     result, text = _run("reproject", src, "-c", calib_path, "-o", tmp_path / "x.npy", "--to", "fisheye",
                         "--target-calibration", kb_path, "--width", 50)
     assert result.exit_code == 2 and "radial_polytargetonly" in text and not (tmp_path / "x.npy").exists()
+
+
+def test_bad_numbers_and_output_paths_are_one_line_errors(tmp_path, small_calibration):
+    calib_path, _ = small_calibration
+    src = write_image(tmp_path / "in.png", np.zeros((H, W, 3), np.uint8))
+    for args, text in ((("--pitch", "inf"), "--pitchmustbeafinite"), (("--yaw", "nan"), "--yawmustbeafinite"),
+                       (("--width", 0), "--widthmustbeapositive")):
+        result, out = _run("reproject", src, "-c", calib_path, "-o", tmp_path / "o.png", *args)
+        assert result.exit_code == 2 and text in out, out
+    (tmp_path / "adir").mkdir()
+    result, out = _run("reproject", src, "-c", calib_path, "-o", tmp_path / "adir")
+    assert result.exit_code == 2 and "isadirectory" in out
+    assert not (tmp_path / "o.png").exists()
+
+
+def test_errors_are_never_hard_wrapped(tmp_path):
+    """Without a terminal rich wraps at 80 columns: a long path must stay on the one error line."""
+    import subprocess
+    import sys
+
+    long_dir = tmp_path / ("x" * 90)
+    long_dir.mkdir()
+    proc = subprocess.run([sys.executable, "-c", "from jaxfish.cli import main; main()", "convert",
+                           str(long_dir / "missing_calibration.json"), "--to", "kb", "-o", str(tmp_path / "o.json")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and "missing_calibration.json" in lines[0], proc.stderr

@@ -53,6 +53,15 @@ def test_wrong_dtype_and_missing_files(tmp_path):
         read_events_npy(tmp_path / "bad.npy")
     with pytest.raises(ImageError, match="missing"):
         read_events_tonic(tmp_path / "none.npz")
+    (tmp_path / "corrupt.npy").write_bytes(b"garbage")
+    with pytest.raises(ImageError, match="corrupt.npy.*not a readable"):
+        read_events_npy(tmp_path / "corrupt.npy")
+    for plain in (np.zeros((3, 2)), np.array([[1.7, -3.0, 2e30]]), np.zeros(3)):  # a cast would invent events
+        with pytest.raises(ImageError, match="out.npy.*DVS fields"):
+            write_events_npy(tmp_path / "out.npy", plain)
+        with pytest.raises(ImageError, match="DVS fields"):
+            carla_to_tonic(plain)
+    assert not (tmp_path / "out.npy").exists()
 
 
 def test_colour_rendering(tmp_path):
