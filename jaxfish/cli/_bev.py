@@ -30,6 +30,18 @@ FISHEYES = ("FV", "MVL", "MVR", "RV")
 NO_LABEL = 255
 
 
+def _load_npy(path: Path):
+    """A dataset ``.npy`` array; a corrupt file is a `JaxfishError` naming it."""
+    import numpy as np
+
+    from .._errors import JaxfishError
+
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise JaxfishError(f"{path}: not a readable .npy array ({e})") from None
+
+
 def _parse_frames(text: str | None, available: list[int]) -> list[int]:
     if text is None:
         return list(available)
@@ -123,7 +135,7 @@ def _dataset_items(source: Path, samples: str | None):
             p = depth_dir / f"{sid}_{n}.npy"
             if not p.is_file():
                 raise JaxfishError(f"{p}: range map missing")
-            r = np.load(p, allow_pickle=False)
+            r = _load_npy(p)
             lab_path = source / "semantic_annotations" / "gtLabels" / f"{sid}_{n}.png"
             lab = read_label_png(lab_path)
             if r.shape != (c.camera.height, c.camera.width) or lab.shape != r.shape:
@@ -141,7 +153,7 @@ def _dataset_items(source: Path, samples: str | None):
             if tsem.shape != (cam.height, cam.width):
                 raise JaxfishError(f"{tpath}: {tsem.shape} does not match BEV.json's {cam.width} x {cam.height}")
             hpath = source / "bev_height" / "raw_data" / f"{sid}_BEV.npy"
-            height = np.load(hpath).astype(np.float32) if hpath.is_file() else None
+            height = _load_npy(hpath).astype(np.float32) if hpath.is_file() else None
             occ = np.asarray(jbev.occupancy_map(height)) if height is not None else None
             truth = {"semantic": tsem, "height_m": height, "occupancy": occ}
         yield sid, cam, pose, maps, truth

@@ -192,14 +192,17 @@ def cube2fisheye(
         for name in names:
             img = read_image(paths[name])
             if capture:  # CARLA's raw BGRA buffers (docs/capture_layout.md)
-                img = decode(img)
+                try:
+                    img = decode(img)
+                except ImageError as e:
+                    raise ImageError(f"{paths[name]}: {e}") from None
             if img.shape[0] != img.shape[1]:
                 raise ImageError(f"{paths[name]}: cube faces must be square, got {img.shape[1]}x{img.shape[0]}")
             if size is not None and img.shape[0] != size[1]:
                 raise ImageError(
                     f"{paths[name]}: face size {img.shape[0]}x{img.shape[0]} differs from {size[0]} ({size[1]}x{size[1]})"
                 )
-            size = size or (paths[name].name, img.shape[0])
+            size = size or (str(paths[name]), img.shape[0])
             images.append(img)
         x = _prepare(images, kind, [str(paths[n]) for n in names])
         fns = _functions()

@@ -9,6 +9,7 @@ occupancy grid, each PNG carrying the BEV scale and axes as metadata (`BEV_METAD
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -125,6 +126,9 @@ def _bev_camera_and_pose(d: Mapping[str, Any], where: str, error: type[JaxfishEr
 
     from ..cameras import Orthographic
 
+    mpp = d.get("metres_per_pixel") if isinstance(d, Mapping) else None
+    if isinstance(mpp, (int, float)) and not isinstance(mpp, bool) and not (math.isfinite(mpp) and mpp > 0):
+        raise error(f"{where}: field '{prefix}metres_per_pixel': expected a positive number of metres, got {mpp!r}")
     try:
         cam = Orthographic(float(d["metres_per_pixel"]), width=int(d["width"]), height=int(d["height"]),
                            cx=float(d["cx"]), cy=float(d["cy"]), dtype=jnp.float32)

@@ -368,6 +368,10 @@ def refit(
     free_idx = np.asarray([i for i, f in enumerate(free) if f], dtype=np.int32)
     cam = with_intrinsics(camera, p)
     res, valid, rms, per_view = summary
+    n_valid = int(jnp.sum(valid))
+    if 2 * n_valid < n_params:  # an RMS over nothing would read as a perfect fit
+        raise ValueError(f"refit: only {n_valid} of {int(used.sum())} correspondences project validly, too few for "
+                         f"{n_params} free parameters (points at the camera centre or outside the lens domain?)")
     pose_names = tuple(f"view{i}.{c}" for i in range(v) for c in ("rx", "ry", "rz", "tx", "ty", "tz")) if fit_pose else ()
     free_names = tuple(n for n, f in zip(names, free, strict=True) if f) + pose_names
     values = jnp.concatenate([p[free_idx], jnp.zeros(len(pose_names), dtype)])

@@ -154,6 +154,9 @@ def test_input_errors():
     few = Correspondences(np.ones((3, 3)), np.ones((3, 2)))
     with pytest.raises(ValueError, match="cannot determine"):
         refit(truth, few, fit_pose=False)
+    centre = Correspondences(np.zeros((60, 3)), np.full((60, 2), 100.0))  # no point projects: not "rms 0"
+    with pytest.raises(ValueError, match="only 0 of 60 correspondences project validly"):
+        refit(truth, centre, fit_pose=False)
     with pytest.raises(ValueError, match="shape"):
         Correspondences(np.ones((3, 2)), np.ones((3, 2)))
     with pytest.raises(ValueError, match="unknown lens model"):
