@@ -11,6 +11,8 @@ from jaxtyping import Array, Float
 _GRID = 2048
 """Grid and bisection steps used to locate the first stationary point on [0, pi]."""
 _BISECTIONS = 60
+_GUESS_BISECTIONS = 20
+"""Bisection steps of `bisection_guess` (the fallback start of the inverse-polynomial Newton solves)."""
 
 
 def first_increasing_limit(derivative, params, dtype, *, margin: float) -> Float[Array, ""]:
@@ -40,11 +42,12 @@ def first_increasing_limit(derivative, params, dtype, *, margin: float) -> Float
 
 def bisection_guess(f, params, target: Float[Array, "*batch"], theta_max: Float[Array, ""]) -> Float[Array, "*batch"]:
     """Element-wise bisection of ``f(params, theta) = target`` on ``[0, theta_max]``, where ``f``
-    increases (the valid domain), to about float precision: a starting point from which Newton
-    cannot fail. Not differentiated (the solve that starts from it is)."""
+    increases (the valid domain), to ``pi / 2**20`` (3e-6 rad): inside Newton's quadratic basin
+    even next to a stationary point (``THETA_MAX_MARGIN_RAD`` = 1e-3 away), so the Newton solve
+    that starts from it converges. Not differentiated (that solve is)."""
     params = jax.lax.stop_gradient(params)
     target = jax.lax.stop_gradient(target)
-    steps = _BISECTIONS if target.dtype == jnp.float64 else 30
+    steps = _GUESS_BISECTIONS
 
     def bisect(_, bracket):
         a, b = bracket
