@@ -435,8 +435,10 @@ def build_dataset(
     start = time.perf_counter()
     reader = CaptureReader(capture_dir)  # a missing / malformed header stops the build here
     reader.rig()  # so do the calibrations and (for the BEV) sensors.json, before anything is written
-    if options.bev:
-        has_bev(reader)
+    if options.bev and has_bev(reader):
+        from ..io import bev_sensor
+
+        bev_sensor(reader)  # its scale, size and mount
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     available = reader.frames

@@ -95,6 +95,15 @@ def test_bev_errors_name_the_file(dataset, tmp_path):
         assert result.exit_code == 2 and "00007_MVR.npy" in result.output.replace("\n", "")
     finally:
         (tmp_path / "moved.npy").rename(root / "depth_maps" / "raw_data" / "00007_MVR.npy")
+    target = root / "depth_maps" / "raw_data" / "00007_MVR.npy"
+    good = target.read_bytes()
+    target.write_bytes(b"garbage")  # a corrupt range map: one error line naming it, not a traceback
+    try:
+        result = CliRunner().invoke(app, ["bev", str(root), "--out", str(tmp_path / "o2")])
+        text = result.output.replace("\n", "")
+        assert result.exit_code == 2 and "00007_MVR.npy" in text and "not a readable .npy" in text, text
+    finally:
+        target.write_bytes(good)
 
 
 def test_miou_ignores_void_and_scores_truth_classes_and_json_has_no_nan(tmp_path, tmp_path_factory):

@@ -104,6 +104,8 @@ CAPTURE_CASES = {
                     CaptureError, ["capture.json", "'frames'"]),
     "unknown_camera": (lambda c: _edit_json(c / "capture.json", lambda d: d["cameras"].append("XX")),
                        CaptureError, ["capture.json", "'cameras'", "XX.json"]),
+    "bev_scale": (lambda c: _edit_json(c / "sensors.json", lambda d: d["bev"].__setitem__("metres_per_pixel", 0)),
+                  CaptureError, ["sensors.json", "bev.metres_per_pixel"]),
     "calibration": (lambda c: (c / "calibration/FV.json").write_text('{"extrinsic": {'), CalibrationError, ["FV.json"]),
 }
 
