@@ -107,6 +107,14 @@ def test_cube2fisheye_reads_a_capture_camera_directory(tmp_path, small_calibrati
             assert np.array_equal(got, want)
     result, text = _run("cube2fisheye", "--faces", cam, "-c", calib_path, "-o", tmp_path / "c.png")  # no *_curr files
     assert result.exit_code == 2 and "front/rgb_curr.png" in text and not (tmp_path / "c.png").exists()
+    write_image(cam / "top" / "depth_prev.png", np.zeros((S, S), np.uint8))  # not CARLA's BGRA depth code
+    result, text = _run("cube2fisheye", "--faces", cam, "-c", calib_path, "-o", tmp_path / "d.npy", "--kind", "depth",
+                        "--instant", "prev")
+    assert result.exit_code == 2 and "top/depth_prev.png" in text and "decode_depth" in text, text
+    write_image(cam / "top" / "depth_prev.png", np.zeros((S + 2, S + 2, 4), np.uint8))
+    result, text = _run("cube2fisheye", "--faces", cam, "-c", calib_path, "-o", tmp_path / "d.npy", "--kind", "depth",
+                        "--instant", "prev")
+    assert result.exit_code == 2 and "top/depth_prev.png:facesize34x34differsfrom" in text and "front/depth_prev.png" in text
 
 
 def test_cube2fisheye_errors_leave_no_output(tmp_path, small_calibration):
