@@ -519,10 +519,19 @@ class CaptureReader:
                               for k in ("rgb", "depth_m", "semantic", "actor_id")))
 
     def dvs(self, frame: int, camera: str, face: str) -> np.ndarray:
-        """DVS events of a face between t-1 and t (`DVS_EVENT_DTYPE`, t in ns)."""
+        """DVS events of a face between t-1 and t (`DVS_EVENT_DTYPE`, t in ns); an event outside
+        the face (``x`` or ``y`` >= ``face_size``) raises `CaptureError` naming the file and field."""
         from ._carla import DVS_EVENT_DTYPE
 
-        return self._npy(self._frame(frame) / "cameras" / camera / face / "dvs.npy", dtype=DVS_EVENT_DTYPE)
+        path = self._frame(frame) / "cameras" / camera / face / "dvs.npy"
+        ev = self._npy(path, dtype=DVS_EVENT_DTYPE)
+        size = self.meta.get("face_size")
+        if size is not None and ev.size:
+            for axis in ("x", "y"):
+                top = int(ev[axis].max())
+                if top >= size:
+                    raise CaptureError(f"{path}: field '{axis}': event at {axis} = {top} outside the {size}-px face")
+        return ev
 
     def view(self, frame: int, name: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """The ``"bev"`` or ``"front"`` camera's images (``actor_ids``: see `read_images`)."""

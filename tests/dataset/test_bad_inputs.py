@@ -44,6 +44,13 @@ def _float_dvs(cap: Path) -> None:
     np.save(cap / "frames/000000/cameras/FV/front/dvs.npy", np.zeros((5, 4), np.float32))
 
 
+def _dvs_outside(cap: Path) -> None:
+    path = cap / "frames/000000/cameras/FV/front/dvs.npy"
+    ev = np.load(path).copy()
+    ev["x"][0] = 5000  # off a small face: corrupt, not droppable
+    np.save(path, ev)
+
+
 def _corrupt_lidar(cap: Path) -> None:
     (cap / "frames/000000/lidar.npy").write_bytes(b"garbage")
 
@@ -53,6 +60,7 @@ SAMPLE_CASES = {
     "wrong_size_face": (_wrong_size_face, ["FV/front/rgb_curr.png", "16x16", "expected"]),
     "gray_depth": (_gray_depth, ["FV/front/depth_curr.png", "decode_depth"]),
     "float_dvs": (_float_dvs, ["FV/front/dvs.npy", "dtype"]),
+    "dvs_outside": (_dvs_outside, ["FV/front/dvs.npy", "field 'x'", "5000"]),
     "corrupt_lidar": (_corrupt_lidar, ["lidar.npy", "not a readable .npy"]),
     "nan_ego": (lambda c: _edit_json(c / "frames/000000/ego.json",
                                      lambda d: d["transform"]["rotation"].__setitem__(1, float("nan"))),
