@@ -181,9 +181,14 @@ def bev(
         raise fail(f"{source}: neither a capture (capture.json) nor a built dataset (calibration_data/)")
     from .._errors import JaxfishError
 
+    started: list[str] = []
     try:
-        per_sample, pooled = _run(items, out, kind)
+        per_sample, pooled = _run(items, out, kind, started)
     except JaxfishError as e:
+        for sid in started:  # no top views without their scores: this run's files go
+            for sub in ("fused", "ipm", "truth"):
+                for p in (out / sub).glob(f"{sid}_*"):
+                    p.unlink(missing_ok=True)
         raise fail(str(e)) from None
     _report(source, kind, out, per_sample, pooled)
 
@@ -231,7 +236,7 @@ def _iou():
     return _IOU[0]
 
 
-def _run(items, out: Path, kind: str):
+def _run(items, out: Path, kind: str, started: list[str] | None = None):
     import jax
     import numpy as np
 
@@ -245,6 +250,8 @@ def _run(items, out: Path, kind: str):
     pooled = {"fused": [], "ipm": [], "truth_count": []}
     with console.status(f"{kind}: top views ...") as status:
         for sid, cam, pose, maps, truth in items:
+            if started is not None:
+                started.append(sid)
             status.update(f"{kind} sample {sid}: fusing {len(maps['names'])} cameras")
             cams = jbev.stack_cameras(maps["cameras"])
             poses = jbev.stack_poses(maps["cameras_to_vehicle"])

@@ -102,6 +102,7 @@ def test_bev_errors_name_the_file(dataset, tmp_path):
         result = CliRunner().invoke(app, ["bev", str(root), "--out", str(tmp_path / "o2")])
         text = result.output.replace("\n", "")
         assert result.exit_code == 2 and "00007_MVR.npy" in text and "not a readable .npy" in text, text
+        assert not [p for p in (tmp_path / "o2").rglob("*") if p.is_file()]  # the samples before it are gone too
     finally:
         target.write_bytes(good)
 
