@@ -60,11 +60,25 @@ def bisection_guess(f, params, target: Float[Array, "*batch"], theta_max: Float[
     return 0.5 * (lo + hi)
 
 
+@jax.custom_batching.custom_vmap
+def all_of_batch(flags):
+    """``jnp.all(flags)``, and under ``vmap`` the ``all`` over the whole batch as one unbatched
+    scalar: a ``lax.cond`` on it stays a branch (a batched predicate turns ``cond`` into a select
+    that runs both branches)."""
+    return jnp.all(flags)
+
+
+@all_of_batch.def_vmap
+def _all_of_batch_vmap(axis_size, in_batched, flags):
+    return all_of_batch(flags), False
+
+
 def solve_with_fallback(solve, f, params, target: Float[Array, "*batch"], theta_max: Float[Array, ""],
                         theta0: Float[Array, "*batch"]):
     """``solve(theta0)`` -> ``(theta, converged)``; if any element did not converge (Newton can
     cycle where the lens polynomial has an inflection, near a stationary point), solve again from
-    `bisection_guess`. The retry runs only when needed (a ``lax.cond``)."""
+    `bisection_guess`. The retry runs only when needed: a ``lax.cond`` on `all_of_batch`, which
+    stays a branch under ``vmap`` over cameras."""
     theta, converged = solve(theta0)
-    return jax.lax.cond(jnp.all(converged), lambda: (theta, converged),
+    return jax.lax.cond(all_of_batch(jax.lax.stop_gradient(converged)), lambda: (theta, converged),
                         lambda: solve(bisection_guess(f, params, target, theta_max)))

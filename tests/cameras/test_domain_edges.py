@@ -104,3 +104,23 @@ def test_overflowing_coordinates_are_masked_not_wrong(model):
 
     grads = jax.grad(masked)(cam, huge_px)  # the camera's array leaves
     assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grads))
+
+
+def test_the_fallback_runs_for_a_batch_of_cameras_and_nested_batches():
+    """Under vmap the retry's predicate covers the whole batch (`all_of_batch`): one lens that needs
+    the bisection gets it, next to one that does not, in one and two levels of vmap, with gradients."""
+    stationary = STATIONARY["woodscape"](jnp.float64)
+    plain = jf.default_rig()["FV"].camera
+    plain = jf.WoodScapeFisheye(plain.k, width=1280, height=966, dtype=jnp.float64)
+    cams = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), stationary, plain)
+    theta = np.linspace(0.0, float(stationary.theta_max()), 501)
+    p = jnp.asarray(np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], -1))
+    uv = jax.vmap(lambda c: c.project(p)[0])(cams)
+    rays, valid = jax.jit(jax.vmap(lambda c, x: c.unproject(x)))(cams, uv)
+    assert bool(jnp.all(valid))
+    np.testing.assert_allclose(np.asarray(jax.vmap(lambda c, r: c.project(r)[0])(cams, rays)), np.asarray(uv), atol=1e-6)
+    frames = jnp.stack([uv, uv])  # (frames, cameras, points, 2): vmap over frames of vmap over cameras
+    nested = jax.vmap(jax.vmap(lambda c, x: c.unproject(x)[1]), in_axes=(None, 0))(cams, frames)
+    assert bool(jnp.all(nested))
+    grad = jax.grad(lambda c: jnp.sum(jax.vmap(lambda cc, x: cc.unproject(x)[0][:, 2])(c, uv)))(cams)
+    assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grad))
