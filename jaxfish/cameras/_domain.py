@@ -1,4 +1,5 @@
-"""Validity domains of radial lens models: where the image radius stops increasing."""
+"""Validity domains of radial lens models (where the image radius stops increasing) and the inverse of
+the radius polynomial on them."""
 
 from __future__ import annotations
 
@@ -6,7 +7,11 @@ import math
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+import lineax as lx
+import optimistix as optx
+from jaxtyping import Array, Bool, Float
+
+from .._numerics import eps_for
 
 _GRID = 2048
 """Grid and bisection steps used to locate the first stationary point on [0, pi]."""
@@ -47,7 +52,6 @@ def bisection_guess(f, params, target: Float[Array, "*batch"], theta_max: Float[
     that starts from it converges. Not differentiated (that solve is)."""
     params = jax.lax.stop_gradient(params)
     target = jax.lax.stop_gradient(target)
-    steps = _GUESS_BISECTIONS
 
     def bisect(_, bracket):
         a, b = bracket
@@ -56,7 +60,7 @@ def bisection_guess(f, params, target: Float[Array, "*batch"], theta_max: Float[
         return jnp.where(low, m, a), jnp.where(low, b, m)
 
     zero = jnp.zeros_like(target)
-    lo, hi = jax.lax.fori_loop(0, steps, bisect, (zero, zero + theta_max.astype(target.dtype)))
+    lo, hi = jax.lax.fori_loop(0, _GUESS_BISECTIONS, bisect, (zero, zero + theta_max.astype(target.dtype)))
     return 0.5 * (lo + hi)
 
 
@@ -73,12 +77,30 @@ def _all_of_batch_vmap(axis_size, in_batched, flags):
     return all_of_batch(flags), False
 
 
-def solve_with_fallback(solve, f, params, target: Float[Array, "*batch"], theta_max: Float[Array, ""],
-                        theta0: Float[Array, "*batch"]):
-    """``solve(theta0)`` -> ``(theta, converged)``; if any element did not converge (Newton can
-    cycle where the lens polynomial has an inflection, near a stationary point), solve again from
-    `bisection_guess`. The retry runs only when needed: a ``lax.cond`` on `all_of_batch`, which
-    stays a branch under ``vmap`` over cameras."""
-    theta, converged = solve(theta0)
+def invert_increasing(f, residual, params, target: Float[Array, "*batch"], theta_max: Float[Array, ""],
+                      theta0: Float[Array, "*batch"], *, rtol: float, atol: float, max_steps: int = 32
+                      ) -> tuple[Float[Array, "*batch"], Bool[Array, "*batch"]]:
+    """Solve ``f(params, theta) = target`` element-wise on ``[0, theta_max]`` (where ``f`` increases)
+    with optimistix Newton from ``theta0``: one root-finding problem with a *diagonal* Jacobian,
+    ``residual(theta, (params, target))`` in radians; gradients implicit (exact). Returns
+    ``(theta, converged)``, `converged` a per-element check ``|f - target| <= 64 eps max(|target|, 1)``.
+
+    Should Newton fail anywhere (it can cycle where ``f`` has an inflection before a stationary
+    point), the solve is repeated from `bisection_guess`: a ``lax.cond`` on `all_of_batch`, so it
+    runs only when needed and stays a branch under ``vmap`` over cameras."""
+    dtype = target.dtype
+
+    def newton(start):
+        sol = optx.root_find(
+            residual, optx.Newton(rtol=rtol, atol=atol), start, args=(params, target),
+            options=dict(lower=jnp.zeros((), dtype), upper=theta_max.astype(dtype)),
+            max_steps=max_steps, throw=False, tags=frozenset({lx.diagonal_tag}),
+        )
+        theta = sol.value
+        error = jnp.abs(f(params, theta) - target)
+        converged = (error <= 64 * eps_for(dtype) * jnp.maximum(jnp.abs(target), 1.0)) & jnp.isfinite(theta)
+        return jnp.where(jnp.isfinite(theta), theta, jnp.zeros_like(theta)), converged
+
+    theta, converged = newton(theta0)
     return jax.lax.cond(all_of_batch(jax.lax.stop_gradient(converged)), lambda: (theta, converged),
-                        lambda: solve(bisection_guess(f, params, target, theta_max)))
+                        lambda: newton(bisection_guess(f, params, target, theta_max)))

@@ -7,13 +7,11 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
-import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_norm, stack_last
 from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
-from ._domain import first_increasing_limit, solve_with_fallback
+from ._domain import first_increasing_limit, invert_increasing
 
 KB_THETA_MAX_MARGIN_RAD = 1e-3
 """When theta_d(theta) has a stationary point theta_s <= pi, the valid domain is
@@ -51,7 +49,7 @@ def solve_theta_kb(
 ) -> tuple[Float[Array, "*batch"], Bool[Array, "*batch"]]:
     """Invert theta_d(theta) = theta_d on [0, theta_max] with an element-wise optimistix Newton
     (diagonal Jacobian, fused clipped-Newton initial guess from ``theta = theta_d``; repeated from
-    a bisection should it fail anywhere: `solve_with_fallback`). Gradients are implicit (exact).
+    a bisection should it fail anywhere: `invert_increasing`). Gradients are implicit (exact).
     Returns ``(theta, converged)`` with a per-element residual check."""
     dtype = theta_d.dtype
     tol = 1e-11 if dtype == jnp.float64 else 4e-6
@@ -62,23 +60,8 @@ def solve_theta_kb(
         step = (theta_d_of_theta(kk, theta0) - td0) / jnp.maximum(dtheta_d_dtheta(kk, theta0), eps_for(dtype))
         theta0 = jnp.clip(theta0 - step, 0.0, theta_max)
 
-    def newton(start):
-        sol = optx.root_find(
-            _residual,
-            optx.Newton(rtol=tol, atol=tol),
-            start,
-            args=(k, theta_d),
-            options=dict(lower=jnp.zeros((), dtype), upper=theta_max.astype(dtype)),
-            max_steps=_MAX_NEWTON_STEPS,
-            throw=False,
-            tags=frozenset({lx.diagonal_tag}),
-        )
-        theta = sol.value
-        residual = jnp.abs(theta_d_of_theta(k, theta) - theta_d)
-        converged = (residual <= 64 * eps_for(dtype) * jnp.maximum(jnp.abs(theta_d), 1.0)) & jnp.isfinite(theta)
-        return jnp.where(jnp.isfinite(theta), theta, jnp.zeros_like(theta)), converged
-
-    return solve_with_fallback(newton, theta_d_of_theta, k, theta_d, theta_max, theta0)
+    return invert_increasing(theta_d_of_theta, _residual, k, theta_d, theta_max, theta0, rtol=tol, atol=tol,
+                             max_steps=_MAX_NEWTON_STEPS)
 
 
 class KannalaBrandt(AbstractCamera):

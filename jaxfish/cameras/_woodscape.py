@@ -5,14 +5,12 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_norm, stack_last
 from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
-from ._domain import first_increasing_limit, solve_with_fallback
+from ._domain import first_increasing_limit, invert_increasing
 
 THETA_MAX_MARGIN_RAD = 1e-3
 """When rho(theta) has a stationary point theta_s <= pi, the valid domain is [0, theta_s - margin]:
@@ -86,31 +84,13 @@ def solve_theta(
     is one vectorised polynomial evaluation; it starts from `_initial_guess`. Gradients with
     respect to ``rho`` and ``k`` are implicit (exact). Should Newton fail anywhere (it can cycle
     near a stationary point of rho, on lenses whose domain ends before pi), the solve is repeated
-    from a bisection (`solve_with_fallback`). Returns ``(theta, converged)``; `converged` is a
+    from a bisection (`invert_increasing`). Returns ``(theta, converged)``; `converged` is a
     per-element residual check, never a silent default.
     """
-    dtype = rho.dtype
-    rtol, atol = _newton_tolerances(dtype)
-
-    def newton(theta0):
-        sol = optx.root_find(
-            _theta_residual,
-            optx.Newton(rtol=rtol, atol=atol),
-            theta0,
-            args=(k, rho),
-            options=dict(lower=jnp.zeros((), dtype), upper=theta_max.astype(dtype)),
-            max_steps=_MAX_NEWTON_STEPS,
-            throw=False,
-            tags=frozenset({lx.diagonal_tag}),
-        )
-        theta = sol.value
-        scale = jnp.maximum(jnp.abs(rho), 1.0)
-        residual = jnp.abs(rho_of_theta(k, theta) - rho)
-        converged = (residual <= 64 * eps_for(dtype) * scale) & jnp.isfinite(theta)
-        return jnp.where(jnp.isfinite(theta), theta, jnp.zeros_like(theta)), converged
-
-    return solve_with_fallback(newton, rho_of_theta, k, rho, theta_max,
-                               _initial_guess(k, jax.lax.stop_gradient(rho), theta_max))
+    rtol, atol = _newton_tolerances(rho.dtype)
+    return invert_increasing(rho_of_theta, _theta_residual, k, rho, theta_max,
+                             _initial_guess(k, jax.lax.stop_gradient(rho), theta_max), rtol=rtol, atol=atol,
+                             max_steps=_MAX_NEWTON_STEPS)
 
 
 class WoodScapeFisheye(AbstractCamera):
