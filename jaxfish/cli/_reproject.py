@@ -56,26 +56,17 @@ def _prepare(images, kind: str, names: list[str]):
     return x
 
 
-def _capture_rgb(bgra):
-    from ..io import bgra_to_rgb
-
-    return bgra_to_rgb(bgra)
+_CAPTURE_STEMS = {"rgb": "rgb", "label": "semantic", "depth": "depth"}
+"""--kind -> the file stem it reads in a capture's face directory (``FACE/{stem}_{instant}.png``)."""
 
 
-def _capture_tags(bgra):
-    from ..io import decode_semantic
+def _decode_capture(kind: str, bgra):
+    """CARLA's raw BGRA buffer of a capture face -> what ``--kind`` reads from ordinary faces."""
+    from ..io import bgra_to_rgb, decode_depth, decode_semantic
 
-    return decode_semantic(bgra)[..., None]
-
-
-def _capture_depth(bgra):
-    from ..io import decode_depth
-
-    return decode_depth(bgra)[..., None]
-
-
-# --kind -> (file stem in a capture's face directory, decoder of CARLA's BGRA buffer)
-_CAPTURE_FILES = {"rgb": ("rgb", _capture_rgb), "label": ("semantic", _capture_tags), "depth": ("depth", _capture_depth)}
+    if kind == "rgb":
+        return bgra_to_rgb(bgra)
+    return (decode_semantic if kind == "label" else decode_depth)(bgra)[..., None]
 
 
 def _resample(x, lut, kind: str, *, planar: bool):
@@ -167,7 +158,7 @@ def cube2fisheye(
         if not faces.is_dir():
             raise FileNotFoundError(f"{faces}: faces directory not found")
         capture = (faces / FIVE_FACES[0]).is_dir()  # a capture camera: FACE/{rgb,semantic,depth}_{instant}.png
-        stem, decode = _CAPTURE_FILES[kind]
+        stem = _CAPTURE_STEMS[kind]
 
         def find(name):
             if capture:
@@ -193,7 +184,7 @@ def cube2fisheye(
             img = read_image(paths[name])
             if capture:  # CARLA's raw BGRA buffers (docs/capture_layout.md)
                 try:
-                    img = decode(img)
+                    img = _decode_capture(kind, img)
                 except ImageError as e:
                     raise ImageError(f"{paths[name]}: {e}") from None
             if img.shape[0] != img.shape[1]:

@@ -18,7 +18,7 @@ from ..calibration import (
     Calibration,
 )
 from ..cameras import WoodScapeFisheye
-from ..transforms import Pose
+from ..transforms import CARLA_TO_ISO, Pose
 
 _WOODSCAPE_T = "translation"
 _SYNWOODSCAPE_T = "translation used in CARLA (CARLA reference)"
@@ -92,7 +92,7 @@ def calibration_from_dict(
             if name not in SYNWOODSCAPE_CORRECTED_TRANSLATIONS_CARLA:
                 raise _fail(source, "name", f"apply_errata needs one of {CAMERA_NAMES}, got {name!r}")
             t = np.asarray(SYNWOODSCAPE_CORRECTED_TRANSLATIONS_CARLA[name], dtype=float)
-        t = t * np.array([1.0, -1.0, 1.0])  # CARLA (y right) -> ISO 8855 (y left)
+        t = CARLA_TO_ISO @ t  # CARLA (y right) -> ISO 8855 (y left)
 
     intr = _mapping(data["intrinsic"], source, "intrinsic")
     if intr.get("model", "radial_poly") != "radial_poly":  # before the key check: another model's keys differ
@@ -161,7 +161,7 @@ def calibration_to_dict(calib: Calibration, *, flavor: str | None = None) -> dic
     if q.ndim != 1 or t.ndim != 1:
         raise ValueError("calibration_to_dict: expected a single (unbatched) calibration")
     if flavor == "synwoodscape":
-        t = t * np.array([1.0, -1.0, 1.0])
+        t = CARLA_TO_ISO @ t
     k = [float(x) for x in np.asarray(cam.k)]
     return {
         "extrinsic": {

@@ -132,7 +132,8 @@ def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = Tru
     sem = load("semantic", decode_semantic)
     if not actor_ids:
         return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=None)  # type: ignore[arg-type]
-    _, ids = _checked(decode_instance, directory / f"instance_{instant}.png", size)(read_image(directory / f"instance_{instant}.png"))
+    path = directory / f"instance_{instant}.png"
+    _, ids = _checked(decode_instance, path, size)(read_image(path))
     return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=ids.astype(np.int32))
 
 
@@ -420,6 +421,7 @@ class CaptureReader:
     def __init__(self, root: str | os.PathLike, *, reuse_decoded: bool = False):
         self.root = Path(root)
         self._reuse_key = (str(self.root.resolve()),) if reuse_decoded else None  # the capture, once
+        self._sensors: dict[str, Any] | None = None
         header = self.root / "capture.json"
         if not header.is_file():
             raise CaptureError(f"{header}: not a capture directory (capture.json missing)")
@@ -458,8 +460,11 @@ class CaptureReader:
         return load_rig(self.root / "calibration", names=tuple(self.cameras))
 
     def sensors(self) -> dict[str, Any]:
-        """``sensors.json``: BEV, front, lidar, radar, IMU, GNSS and DVS settings and mounts."""
-        return self._read_json(self.root / "sensors.json")
+        """``sensors.json``: BEV, front, lidar, radar, IMU, GNSS and DVS settings and mounts (read
+        once per reader: every view, the BEV checks and the builder ask for it per sample)."""
+        if self._sensors is None:
+            self._sensors = self._read_json(self.root / "sensors.json")
+        return self._sensors
 
     def _read_json(self, path: Path) -> Any:
         if not path.is_file():

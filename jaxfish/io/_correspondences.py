@@ -41,10 +41,8 @@ from .._errors import CalibrationError, JaxfishError
 from ..calibration import Calibration
 from ..cameras import WoodScapeFisheye
 from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict
-from ..transforms import Pose
+from ..transforms import CARLA_TO_ISO, Pose
 from ._calibration_json import _SYNWOODSCAPE_T, _WOODSCAPE_T, calibration_from_dict, calibration_to_dict
-
-_CARLA_TO_ISO = np.array([1.0, -1.0, 1.0])  # y right <-> y left (its own inverse)
 
 CORRESPONDENCE_FRAMES: tuple[str, ...] = ("board", "vehicle", "camera")
 """Values of a correspondences file's ``frame``."""
@@ -201,7 +199,7 @@ def camera_calibration_from_dict(data: Any, *, source: str = "<calibration>", dt
     if abs(qn - 1.0) > 1e-3:
         raise CalibrationError(f"{source}: field 'extrinsic.quaternion': expected a unit quaternion, norm is {qn:.6g}")
     if flavor == "synwoodscape":
-        t = t * _CARLA_TO_ISO  # CARLA (y right) -> ISO 8855 (y left), as `calibration_from_dict`
+        t = CARLA_TO_ISO @ t  # CARLA (y right) -> ISO 8855 (y left), as `calibration_from_dict`
     pose = Pose.from_quaternion_xyzw(q / qn, t, dtype=camera.fx.dtype)
     return Calibration(name, camera, pose, flavor)
 
@@ -230,7 +228,7 @@ def camera_calibration_to_dict(calib: Calibration) -> dict[str, Any]:
         raise ValueError("camera_calibration_to_dict: expected a single (unbatched) calibration")
     t_key = _WOODSCAPE_T
     if calib.flavor == "synwoodscape":
-        t, t_key = t * _CARLA_TO_ISO, _SYNWOODSCAPE_T
+        t, t_key = CARLA_TO_ISO @ t, _SYNWOODSCAPE_T
     return {
         "extrinsic": {"quaternion": [float(x) for x in q], t_key: [float(x) for x in t]},
         "intrinsic": intrinsics_to_dict(calib.camera),
