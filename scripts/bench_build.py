@@ -3,7 +3,8 @@
 
 Measures, after compilation: the serial rate (samples/s, the median of ``--repeat`` rebuilds into
 fresh directories), the peak resident memory of the process (``resource.getrusage``), and the rate
-of dask ``LocalCluster`` builds with 1 and 2 single-threaded process workers (each worker warms up
+of dask ``LocalCluster`` builds with 1 and 2 single-threaded process workers, each pinned to its
+share of the cores as `build_dataset` pins them (`jaxfish.dataset.share_cores`; each worker warms up
 on the sample first; then ``2 x workers`` builds of the sample run as separate tasks).
 
     uv run python scripts/bench_build.py                    # renders the capture first (minutes)
@@ -59,10 +60,11 @@ def _worker_peak_mb() -> float:
 def bench_dask(capture: Path, scratch: Path, workers: int) -> tuple[float, float, list[float]]:
     from distributed import Client
 
-    from jaxfish.dataset import local_cluster
+    from jaxfish.dataset import local_cluster, share_cores
 
     with local_cluster(workers) as cluster, \
             Client(cluster) as client:
+        share_cores(client)  # as build_dataset does for its local cluster
         warm = client.run(_warm, str(capture), str(scratch / f"dask{workers}"))
         n = 2 * workers
         start = time.perf_counter()

@@ -30,4 +30,6 @@ from ._layout import sample_id as sample_id
 from ._manifest import DATASET_FORMAT as DATASET_FORMAT
 from ._manifest import dataset_manifest as dataset_manifest
 from ._manifest import write_dataset_files as write_dataset_files
+from ._runtime import core_shares as core_shares
+from ._runtime import share_cores as share_cores
 from ._runtime import tune_allocator as tune_allocator

@@ -29,7 +29,7 @@ import numpy as np
 
 from .._errors import JaxfishError
 from ._layout import BEV_CAMERA, FISHEYE_CAMERAS, LAYOUT, LAYOUT_VERSION, sample_id
-from ._runtime import tune_allocator
+from ._runtime import share_cores, tune_allocator
 
 DONE_DIR = ".done"
 """Folder of the per-sample completion markers."""
@@ -276,15 +276,18 @@ def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[
     sid = sample_id(frame)
     thr = options.motion_threshold_m
     png = int(options.png_level)
-    written: list[Path] = []
+    written: list[tuple[Path, str]] = []  # (file, SHA-256), hashed by the thread that wrote it
     pool = concurrent.futures.ThreadPoolExecutor(options.write_threads) if options.write_threads > 0 else None
     pending: list[concurrent.futures.Future] = []
 
+    def hashed(fn, *args, **kwargs) -> list[tuple[Path, str]]:
+        return [(p, _sha256(p)) for p in fn(*args, **kwargs)]  # the bytes are still in the page cache
+
     def write(fn, *args, **kwargs):
         if pool is None:
-            written.extend(fn(*args, **kwargs))
+            written.extend(hashed(fn, *args, **kwargs))
         else:
-            pending.append(pool.submit(fn, *args, **kwargs))
+            pending.append(pool.submit(hashed, fn, *args, **kwargs))
 
     failed = True
     try:
@@ -316,7 +319,7 @@ def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[
             pool.shutdown(wait=True)
         if failed:  # the writers have stopped: remove what this sample wrote (the error propagates)
             remove_sample_files(out, sid)
-    files = {p.relative_to(out).as_posix(): _sha256(p) for p in sorted(set(written))}
+    files = {p.relative_to(out).as_posix(): digest for p, digest in written}
     marker = {"sample": sid, "frame": frame, "layout_version": LAYOUT_VERSION, "files": dict(sorted(files.items()))}
     atomic_write_text(out / DONE_DIR / f"{sid}.json", json.dumps(marker, indent=1) + "\n")
     return marker
@@ -492,6 +495,8 @@ def _run_dask(capture_dir: str, out_dir: str, frames: list[int], options: BuildO
     else:
         cluster = local_cluster(int(workers or 1), processes=processes)
         client = Client(cluster)
+        if processes:
+            share_cores(client)
     try:
         batches = {f"jaxfish-samples-{sample_id(b[0])}-{sample_id(b[-1])}": b for b in _batches(frames, options.batch_frames)}
         futures = [client.submit(_batch_task, capture_dir, out_dir, b, options, key=key, pure=False)
@@ -528,3 +533,4 @@ def local_cluster(workers: int, *, processes: bool = True):
                if k != "MALLOC_TRIM_THRESHOLD_"}
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None)
+

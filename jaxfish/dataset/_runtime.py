@@ -1,10 +1,14 @@
-"""Process settings for bulk runs (edge code: it changes the C allocator of the whole process)."""
+"""Process settings for bulk runs (edge code: they change the C allocator or the CPU affinity of
+whole processes)."""
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
+import os
 import threading
+from collections.abc import Sequence
 
 # glibc mallopt parameters (malloc.h).
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
@@ -48,3 +52,48 @@ def _apply() -> bool:
     ok &= mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
     ok &= mallopt(_M_TOP_PAD, 64 * 2**20)
     return bool(ok)
+
+
+def core_shares(workers: int, cores: Sequence[int]) -> list[tuple[int, ...]]:
+    """One share of ``cores`` per worker: disjoint contiguous groups whose sizes differ by at most
+    one when there are at least as many cores as workers, one core each round robin otherwise."""
+    cores = list(cores)
+    if workers < 1 or not cores:
+        raise ValueError(f"core_shares: need at least one worker and one core, got {workers} and {cores}")
+    if workers >= len(cores):
+        return [(cores[i % len(cores)],) for i in range(workers)]
+    bounds = [round(i * len(cores) / workers) for i in range(workers + 1)]
+    return [tuple(cores[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def share_cores(client) -> dict[str, tuple[int, ...]]:
+    """Pin every worker process of ``client`` (a dask.distributed client of a cluster on this
+    machine, e.g. `local_cluster`) to its own share of this process's cores (`core_shares`, in
+    worker-name order). Returns ``{worker address: cores}``; ``{}`` where nothing was pinned (not
+    Linux, or one worker sharing all cores).
+
+    Why: each worker runs its own decode threads, write threads and XLA thread pool, all sized for
+    the whole machine; two unpinned workers on 2 cores contend for both and built 0.30 samples/s,
+    one core each built 0.36 (``scripts/bench_build.py``). Don't call it for thread workers: they
+    share one process."""
+    if not hasattr(os, "sched_setaffinity"):  # pragma: no cover - not Linux
+        return {}
+    info = client.scheduler_info()["workers"]
+    addresses = sorted(info, key=lambda a: str(info[a].get("name", a)))
+    cores = sorted(os.sched_getaffinity(0))
+    shares = core_shares(len(addresses), cores)
+    if len(shares) == 1 and len(shares[0]) == len(cores):
+        return {}
+    for address, share in zip(addresses, shares, strict=True):
+        client.run(_pin_process, share, workers=[address])
+    return dict(zip(addresses, shares, strict=True))
+
+
+def _pin_process(cores: tuple[int, ...]) -> int:
+    """Set the CPU affinity of every thread of this process (threads started later inherit it)."""
+    n = 0
+    for tid in os.listdir("/proc/self/task"):
+        with contextlib.suppress(OSError):  # a thread that has just ended
+            os.sched_setaffinity(int(tid), cores)
+            n += 1
+    return n

@@ -280,17 +280,41 @@ def _worker_environ():
     return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")}
 
 
-def test_local_cluster_workers_keep_glibcs_dynamic_mmap_threshold():
+def _affinity() -> tuple[int, ...]:
+    return tuple(sorted(os.sched_getaffinity(0)))
+
+
+def test_local_cluster_workers_keep_glibcs_dynamic_mmap_threshold_and_get_their_own_cores():
     from distributed import Client
 
-    from jaxfish.dataset import DatasetError, local_cluster
+    from jaxfish.dataset import DatasetError, core_shares, local_cluster, share_cores
 
     with pytest.raises(DatasetError, match="at least 1"):
         local_cluster(0)
-    with local_cluster(1) as cluster, Client(cluster) as client:
-        (env,) = client.run(_worker_environ).values()
-    assert env["MALLOC_TRIM_THRESHOLD_"] is None  # dask's nannies would set 65536
-    assert env["OMP_NUM_THREADS"] == "1"  # the rest of dask's worker environment is kept
+    with local_cluster(2) as cluster, Client(cluster) as client:
+        envs = list(client.run(_worker_environ).values())
+        cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        pinned = share_cores(client)
+        if len(cores) >= 2:  # each worker on its own share of this process's cores, disjoint
+            assert sorted(pinned.values()) == sorted(core_shares(2, cores))
+            assert client.run(_affinity) == pinned
+        else:
+            assert pinned == {} or len(cores) == 1
+    for env in envs:
+        assert env["MALLOC_TRIM_THRESHOLD_"] is None  # dask's nannies would set 65536
+        assert env["OMP_NUM_THREADS"] == "1"  # the rest of dask's worker environment is kept
+
+
+def test_core_shares_split_the_cores_disjointly_or_round_robin():
+    from jaxfish.dataset import core_shares
+
+    assert core_shares(1, [0, 1]) == [(0, 1)]
+    assert core_shares(2, [0, 1]) == [(0,), (1,)]
+    assert core_shares(2, [0, 1, 2, 3]) == [(0, 1), (2, 3)]
+    assert core_shares(3, [4, 5, 6, 7, 8]) == [(4, 5), (6,), (7, 8)]
+    assert core_shares(3, [0, 1]) == [(0,), (1,), (0,)]
+    with pytest.raises(ValueError, match="at least one worker"):
+        core_shares(0, [0])
 
 
 def test_batched_frames_build_equals_the_serial_build_and_isolates_failures(small_capture, reference_build, tmp_path):
