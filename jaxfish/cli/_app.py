@@ -24,6 +24,12 @@ def print_error(message: object) -> None:
     console.print(f"[bold red]error:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
 
 
+def say(text: object) -> None:
+    """A plain report line (paths, numbers) on stderr: like `print_error`, never hard-wrapped at 80
+    columns and never read as rich markup (a path may hold ``[...]``)."""
+    console.print(str(text), highlight=False, markup=False, soft_wrap=True)
+
+
 def fail(message: str, code: int = 2) -> typer.Exit:
     """Print ``error: message`` to stderr and return an exit exception (``raise fail(...)``)."""
     print_error(message)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, console, fail
+from ._app import app, console, fail, say
 
 FISHEYES = ("FV", "MVL", "MVR", "RV")
 NO_LABEL = 255
@@ -316,6 +316,6 @@ def _report(source: Path, kind: str, out: Path, per_sample: list, pooled: dict) 
                                        if np.isfinite(v)} for n in ("fused", "ipm")}
         scores["miou"] = {n: _json_number(v) for n, v in means.items()}
     else:
-        console.print("no true top view found: wrote the fused and IPM views only", highlight=False)
+        say("no true top view found: wrote the fused and IPM views only")
     atomic_write_text(out / "scores.json", json.dumps(scores, indent=1, allow_nan=False) + "\n")
-    console.print(f"wrote {len(per_sample)} sample(s) to {out}", highlight=False)
+    say(f"wrote {len(per_sample)} sample(s) to {out}")

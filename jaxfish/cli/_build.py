@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, console, fail
+from ._app import app, console, fail, say
 
 
 def parse_frames(text: str | None) -> list[int] | None:
@@ -68,7 +68,7 @@ def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, sch
 
         report = build_dataset(capture_dir, out_dir, frames=frames, options=options, scheduler=scheduler,
                                workers=workers, processes=processes, progress=tick)
-    console.print(report.summary(), highlight=False, markup=False, soft_wrap=True)
+    say(report.summary())
     return report
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, console, fail
+from ._app import app, console, fail, say
 
 
 def demo_config(scale: float):
@@ -82,9 +82,9 @@ def demo(
         if sample in report.failed:
             continue
         sheets.append(write_contact_sheet(out / "dataset", sample, out / "contact_sheets" / f"{sample}.png"))
-    console.print(f"capture: {capture}\ndataset: {out / 'dataset'} (layout and conventions in dataset.json)\n"
-                  f"contact sheets: {', '.join(str(p) for p in sheets)}\n"
-                  f"done in {time.perf_counter() - start:.1f} s", highlight=False, markup=False)
+    say(f"capture: {capture}\ndataset: {out / 'dataset'} (layout and conventions in dataset.json)\n"
+        f"contact sheets: {', '.join(str(p) for p in sheets)}\n"
+        f"done in {time.perf_counter() - start:.1f} s")
     if not report.ok:
         raise typer.Exit(1)
 

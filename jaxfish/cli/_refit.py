@@ -9,7 +9,7 @@ from typing import Any
 
 import typer
 
-from ._app import app, check_outputs, console, fail
+from ._app import app, check_outputs, fail, say
 
 
 def _write_json(path: Path, data: Any) -> None:
@@ -122,11 +122,11 @@ def refit(
         "loss": loss, "loss_scale_px": loss_scale,
         "parameters": {k: {"value": v, "std": std.get(k), "fixed": k not in std} for k, v in values.items()},
     }
-    console.print(
+    say(
         f"refit {summary['model']}: rms {summary['rms_px']:.4f} px over {summary['num_correspondences']} points, "
-        f"{summary['num_steps']} steps, converged={summary['converged']}", highlight=False)
+        f"{summary['num_steps']} steps, converged={summary['converged']}")
     for k in pnames:
-        console.print(f"  {k} = {values[k]:.6g} ± {std[k]:.2g}", highlight=False)
+        say(f"  {k} = {values[k]:.6g} ± {std[k]:.2g}")
     if report is not None:
         view = np.asarray(corr.view)
         res = np.asarray(result.residuals)
@@ -138,7 +138,7 @@ def refit(
         full["covariance"] = {"names": list(result.parameter_names),
                               "matrix": np.asarray(result.covariance).tolist()}
         _write_json(report, full)
-    console.print(f"wrote {out}", highlight=False)
+    say(f"wrote {out}")
     if not bool(result.converged):
         raise typer.Exit(1)
 
@@ -180,11 +180,11 @@ def convert(
         "num_target_invalid": int(result.num_target_invalid), "num_steps": int(result.num_steps),
         "converged": bool(result.converged),
     }
-    console.print(
+    say(
         f"{summary['source_model']} -> {target} up to {summary['theta_max_deg']:.1f} deg: max {summary['max_px']:.4g} px, "
         f"rms {summary['rms_px']:.4g} px (inside the image: max {summary['max_px_in_image']:.4g}, "
         f"rms {summary['rms_px_in_image']:.4g}); {summary['num_target_invalid']} of {summary['num_samples']} rays "
-        f"outside the target's domain", highlight=False)
+        f"outside the target's domain")
     if report is not None:
         _write_json(report, summary)
-    console.print(f"wrote {out}", highlight=False)
+    say(f"wrote {out}")

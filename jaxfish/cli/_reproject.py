@@ -14,7 +14,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, check_outputs, console, fail
+from ._app import app, check_outputs, fail, say
 
 _KINDS = ("rgb", "label", "depth")
 _OUT_EXTS = (".png", ".exr", ".npy")
@@ -201,11 +201,9 @@ def cube2fisheye(
         lut = fns["lut"](rig, calib.camera.astype(jnp.float32), supersample=supersample, dtype=jnp.float32)
         values = _resample(x, lut, kind, planar=True)
         _write(out, values, kind)
-        console.print(
+        say(
             f"{calib.name}: {len(names)} faces of {size[1]} px -> {calib.camera.width}x{calib.camera.height} {kind} "
-            f"({supersample}x{supersample} samples per pixel), wrote {out}",
-            highlight=False,
-        )
+            f"({supersample}x{supersample} samples per pixel), wrote {out}")
 
     _run(body)
 
@@ -302,6 +300,6 @@ def reproject(
         lut = fns["lut"](cam, target, target_to_source=r, supersample=supersample, dtype=jnp.float32)
         values = _resample(x, lut, kind, planar=False)
         _write(out, values, kind)
-        console.print(f"{image} ({calib.name}) -> {to} {w}x{h} {kind}, wrote {out}", highlight=False)
+        say(f"{image} ({calib.name}) -> {to} {w}x{h} {kind}, wrote {out}")
 
     _run(body)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, console, fail
+from ._app import app, console, fail, say
 
 
 @app.command()
@@ -48,4 +48,4 @@ def synth(
         task = bar.add_task("synth", total=frames * steps_per_frame(rig))
         synthesize_capture(out, rig, frames=frames, seed=seed, config=config,
                            progress=lambda msg: bar.update(task, advance=1, description=msg))
-    console.print(f"wrote {frames} frame(s) to {out} in {time.perf_counter() - start:.1f} s", highlight=False)
+    say(f"wrote {frames} frame(s) to {out} in {time.perf_counter() - start:.1f} s")

@@ -232,3 +232,17 @@ def test_errors_are_never_hard_wrapped(tmp_path):
     assert proc.returncode == 2
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and "missing_calibration.json" in lines[0], proc.stderr
+
+
+def test_report_lines_are_never_hard_wrapped_nor_read_as_markup(tmp_path):
+    """The success lines (`jaxfish.cli._app.say`) keep a long path holding ``[...]`` whole, on one line."""
+    import subprocess
+    import sys
+
+    src = shared_path("calibration/woodscape/FV.json")
+    out_dir = tmp_path / ("y" * 90 + "[bold]")
+    out_dir.mkdir()
+    proc = subprocess.run([sys.executable, "-c", "from jaxfish.cli import main; main()", "convert", str(src),
+                           "--to", "kb", "-o", str(out_dir / "kb.json")], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert any(line == f"wrote {out_dir / 'kb.json'}" for line in proc.stderr.splitlines()), proc.stderr
