@@ -62,7 +62,8 @@ def _parse_frames(text: str | None, available: list[int]) -> list[int]:
     return out
 
 
-def _write_view(out: Path, stem: str, meta: dict, semantic, height=None, occupancy=None) -> None:
+def _write_view(out: Path, stem: str, meta: dict, semantic, height=None, occupancy=None) -> list[Path]:
+    """Write one top view's files; returns their paths."""
     import jax
     import numpy as np
 
@@ -72,18 +73,21 @@ def _write_view(out: Path, stem: str, meta: dict, semantic, height=None, occupan
 
     sem = np.asarray(semantic)
     idx = np.where((sem >= 0) & (sem < NO_LABEL), sem, NO_LABEL).astype(np.uint8)
-    write_png_with_metadata(out / f"{stem}_semantic.png", idx, dict(meta, content="class index, 255 = no observation"))
-    write_png_with_metadata(out / f"{stem}_semantic_color.png", np.asarray(jax.jit(gt.colorize_labels)(sem)),
-                            dict(meta, content="SynWoodScape palette", palette=gt.SYNWOODSCAPE_PALETTE.tolist()))
+    paths = [
+        write_png_with_metadata(out / f"{stem}_semantic.png", idx, dict(meta, content="class index, 255 = no observation")),
+        write_png_with_metadata(out / f"{stem}_semantic_color.png", np.asarray(jax.jit(gt.colorize_labels)(sem)),
+                                dict(meta, content="SynWoodScape palette", palette=gt.SYNWOODSCAPE_PALETTE.tolist())),
+    ]
     if height is not None:
         h = np.asarray(height, np.float32)
-        write_depth_npy(out / f"{stem}_height.npy", h)
         lo, hi = jbev.HEIGHT_COLOR_RANGE_M
-        write_png_with_metadata(out / f"{stem}_height.png", np.asarray(jax.jit(jbev.colorize_height)(h)),
-                                dict(meta, content="height above the ground (m), viridis", color_range_m=[lo, hi]))
+        paths += [write_depth_npy(out / f"{stem}_height.npy", h),
+                  write_png_with_metadata(out / f"{stem}_height.png", np.asarray(jax.jit(jbev.colorize_height)(h)),
+                                          dict(meta, content="height above the ground (m), viridis", color_range_m=[lo, hi]))]
     if occupancy is not None:
-        write_png_with_metadata(out / f"{stem}_occupancy.png", np.asarray(occupancy).astype(np.uint8) * 255,
-                                dict(meta, content="occupancy: 255 occupied, 0 free or unobserved"))
+        paths.append(write_png_with_metadata(out / f"{stem}_occupancy.png", np.asarray(occupancy).astype(np.uint8) * 255,
+                                             dict(meta, content="occupancy: 255 occupied, 0 free or unobserved")))
+    return paths
 
 
 def _capture_items(source: Path, frames: str | None):
@@ -181,14 +185,12 @@ def bev(
         raise fail(f"{source}: neither a capture (capture.json) nor a built dataset (calibration_data/)")
     from .._errors import JaxfishError
 
-    started: list[str] = []
+    written: list[Path] = []
     try:
-        per_sample, pooled = _run(items, out, kind, started)
+        per_sample, pooled = _run(items, out, kind, written)
     except JaxfishError as e:
-        for sid in started:  # no top views without their scores: this run's files go
-            for sub in ("fused", "ipm", "truth"):
-                for p in (out / sub).glob(f"{sid}_*"):
-                    p.unlink(missing_ok=True)
+        for p in written:  # no top views without their scores: this run's files go
+            p.unlink(missing_ok=True)
         raise fail(str(e)) from None
     _report(source, kind, out, per_sample, pooled)
 
@@ -236,7 +238,9 @@ def _iou():
     return _IOU[0]
 
 
-def _run(items, out: Path, kind: str, started: list[str] | None = None):
+def _run(items, out: Path, kind: str, written: list[Path]):
+    """Fuse, project and (with a true top view) score every item; the files written are appended
+    to ``written`` as they are written (so a caller can remove them when a later item fails)."""
     import jax
     import numpy as np
 
@@ -250,8 +254,6 @@ def _run(items, out: Path, kind: str, started: list[str] | None = None):
     pooled = {"fused": [], "ipm": [], "truth_count": []}
     with console.status(f"{kind}: top views ...") as status:
         for sid, cam, pose, maps, truth in items:
-            if started is not None:
-                started.append(sid)
             status.update(f"{kind} sample {sid}: fusing {len(maps['names'])} cameras")
             cams = jbev.stack_cameras(maps["cameras"])
             poses = jbev.stack_poses(maps["cameras_to_vehicle"])
@@ -263,11 +265,11 @@ def _run(items, out: Path, kind: str, started: list[str] | None = None):
             f = jbev.fuse_cameras(cams, poses, maps["range_m"], maps["semantic"], cam, pose, valid=maps["valid"], rays=rays)
             i = jbev.ipm_semantics(cams, poses, maps["semantic"], cam, pose, valid=maps["valid"])
             meta = bev_metadata(cam, pose, sample=sid)
-            _write_view(out / "fused", sid, meta, f.semantic, f.height_m, f.occupancy)
-            _write_view(out / "ipm", sid, meta, i.semantic)
+            written += _write_view(out / "fused", sid, meta, f.semantic, f.height_m, f.occupancy)
+            written += _write_view(out / "ipm", sid, meta, i.semantic)
             row = {"sample": sid, "observed_fraction": float(np.mean(np.asarray(f.observed)))}
             if truth is not None:
-                _write_view(out / "truth", sid, meta, truth["semantic"], truth["height_m"], truth["occupancy"])
+                written += _write_view(out / "truth", sid, meta, truth["semantic"], truth["height_m"], truth["occupancy"])
                 t = np.asarray(truth["semantic"], np.int32)
                 counts = _truth_counts(t, len(SYNWOODSCAPE_CLASSES))
                 pooled["truth_count"].append(counts)

@@ -533,4 +533,3 @@ def local_cluster(workers: int, *, processes: bool = True):
                if k != "MALLOC_TRIM_THRESHOLD_"}
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None)
-

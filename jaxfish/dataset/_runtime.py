@@ -74,7 +74,7 @@ def share_cores(client) -> dict[str, tuple[int, ...]]:
 
     Why: each worker runs its own decode threads, write threads and XLA thread pool, all sized for
     the whole machine; two unpinned workers on 2 cores contend for both and built 0.30 samples/s,
-    one core each built 0.36 (``scripts/bench_build.py``). Don't call it for thread workers: they
+    one core each built 0.35 (``scripts/bench_build.py``). Don't call it for thread workers: they
     share one process."""
     if not hasattr(os, "sched_setaffinity"):  # pragma: no cover - not Linux
         return {}
@@ -89,11 +89,8 @@ def share_cores(client) -> dict[str, tuple[int, ...]]:
     return dict(zip(addresses, shares, strict=True))
 
 
-def _pin_process(cores: tuple[int, ...]) -> int:
+def _pin_process(cores: tuple[int, ...]) -> None:
     """Set the CPU affinity of every thread of this process (threads started later inherit it)."""
-    n = 0
     for tid in os.listdir("/proc/self/task"):
         with contextlib.suppress(OSError):  # a thread that has just ended
             os.sched_setaffinity(int(tid), cores)
-            n += 1
-    return n
