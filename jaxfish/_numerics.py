@@ -45,6 +45,13 @@ def safe_norm(x: Float[Array, "*batch n"], *, keepdims: bool = False) -> Float[A
     return jnp.where(positive, jnp.sqrt(safe_sq), jnp.zeros_like(sq))
 
 
+def safe_hypot(*planes: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+    """`safe_norm` of coordinates given as separate planes (no minor-axis stack to vectorise)."""
+    sq = sum(c * c for c in planes)
+    positive = sq > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
+
+
 def theta_over_sin(theta: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """``theta / sin(theta)`` for theta in [0, pi), smooth at 0 (Taylor branch).
 

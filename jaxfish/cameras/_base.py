@@ -123,3 +123,54 @@ def finite_or_invalid(values: Float[Array, "*batch n"], valid: Bool[Array, "*bat
     wrong pixel marked valid."""
     finite = jnp.isfinite(values)
     return jnp.where(finite, values, jnp.zeros_like(values)), valid & jnp.all(finite, axis=-1)
+
+
+_EXPONENT_BITS = {jnp.dtype(jnp.float32): (jnp.int32, 23, 0xFF, 127), jnp.dtype(jnp.float64): (jnp.int64, 52, 0x7FF, 1023)}
+
+
+def _power_of_two(k: Array, dtype) -> Array:
+    """``2**k`` (integer ``k`` within the normal exponent range) built from its bits: exact."""
+    itype, mant, _, bias = _EXPONENT_BITS[jnp.dtype(dtype)]
+    return jax.lax.bitcast_convert_type((k.astype(itype) + bias) << mant, dtype)
+
+
+def point_direction(p: Float[Array, "*batch 3"]) -> tuple[Array, Array, Array, Bool[Array, "*batch"]]:
+    """The coordinate planes ``(x, y, z)`` of points, each scaled by a power of two (exactly: no
+    rounding) so that its largest component lies in ``[1, 2)``, and whether the point was finite.
+
+    A central camera's projection only depends on the direction of a point, so the scaled point
+    projects to the same pixel, with the same gradient; but neither a huge point (squares
+    overflowing beyond ~1e19 in float32) nor a tiny one (squares underflowing) loses its
+    direction on the way. A non-finite point becomes ``(0, 0, 1)``, flagged False, so nothing
+    non-finite reaches the values or the gradients of the camera parameters."""
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    finite = jnp.isfinite(x) & jnp.isfinite(y) & jnp.isfinite(z)
+    x, y, z = jnp.where(finite, x, 0.0), jnp.where(finite, y, 0.0), jnp.where(finite, z, 1.0)
+    if jnp.dtype(p.dtype) not in _EXPONENT_BITS:
+        return x, y, z, finite
+    itype, mant, mask, bias = _EXPONENT_BITS[jnp.dtype(p.dtype)]
+    m = jax.lax.stop_gradient(jnp.maximum(jnp.maximum(jnp.abs(x), jnp.abs(y)), jnp.abs(z)))
+    e = (jax.lax.bitcast_convert_type(m, itype) >> mant) & mask  # biased exponent: m in [2**(e-bias), 2**(e-bias+1))
+    k = bias - e  # scale by 2**k, in two normal factors (2**k alone may not be representable)
+    a = k >> 1
+    extreme = (e > 0) & ((k > bias // 4) | (k < -(bias // 4)))  # only where squares (or cubes) could leave the range
+    s1 = jnp.where(extreme, _power_of_two(a, p.dtype), 1.0)
+    s2 = jnp.where(extreme, _power_of_two(k - a, p.dtype), 1.0)
+    return x * s1 * s2, y * s1 * s2, z * s1 * s2, finite
+
+
+def finite_pixels(uv: Float[Array, "*batch 2"]) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
+    """Pixels with non-finite rows replaced by ``(0, 0)`` and whether each was finite: unprojecting
+    the placeholder keeps NaN out of the values and of the gradients of the camera parameters."""
+    finite = jnp.all(jnp.isfinite(uv), axis=-1)
+    return jnp.where(finite[..., None], uv, jnp.zeros_like(uv)), finite
+
+
+def measurable_radius(mx: Float[Array, "*batch"], my: Float[Array, "*batch"]) -> Bool[Array, "*batch"]:
+    """Whether a pixel's offset from the principal point in focal units, ``(mx, my)``, is small
+    enough that the closed-form unprojections (which square it, then square terms of its size
+    again) stay finite: ``mx² + my² <= sqrt(max float)`` (1.8e19 in float32, ~4e9 focal lengths
+    away, beyond any lens). Farther pixels are invalid, never NaN."""
+    r2 = mx * mx + my * my
+    bound = jnp.sqrt(jnp.asarray(jnp.finfo(r2.dtype).max, r2.dtype))
+    return jnp.isfinite(r2) & (r2 <= bound)

@@ -7,15 +7,24 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import resolve_dtype, safe_norm
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
+from .._numerics import resolve_dtype, safe_hypot, safe_norm
+from ._base import (
+    AbstractCamera,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    finite_pixels,
+    measurable_radius,
+    point_direction,
+)
 from ._unified import _safe_sqrt, unified_w
 
 
 def double_sphere_w2(xi: Array, alpha: Array) -> Array:
     """w2 = (w1 + ξ) / sqrt(2 w1 ξ + ξ² + 1): the projection domain is ``z > -w2 |p|``."""
     w1 = unified_w(alpha)
-    return (w1 + xi) / _safe_sqrt(2 * w1 * xi + xi * xi + 1)
+    den = _safe_sqrt(2 * w1 * xi + xi * xi + 1)  # 0 only at xi = -1, alpha = 0.5 (degenerate): w2 = 0 there
+    return (w1 + xi) / jnp.where(den > 0, den, 1.0)
 
 
 class DoubleSphere(AbstractCamera):
@@ -26,7 +35,7 @@ class DoubleSphere(AbstractCamera):
 
         u = fx X / (α d2 + (1-α)(ξ d1 + Z)) + cx,   v = fy Y / (α d2 + (1-α)(ξ d1 + Z)) + cy
 
-    ``ξ`` in [-1, 1], ``α`` in [0, 1]. Valid domain ``Z > -w2 d1`` (`double_sphere_w2`), i.e.
+    ``ξ`` in (-1, 1] (ξ = -1 with α = 0.5 is degenerate: no valid ray), ``α`` in [0, 1]. Valid domain ``Z > -w2 d1`` (`double_sphere_w2`), i.e.
     incidence angles below ``theta_max = arccos(-w2)``, beyond 90 degrees whenever
     ``w1 + ξ > 0``. Unprojection (closed form)::
 
@@ -80,11 +89,11 @@ class DoubleSphere(AbstractCamera):
         p, dtype = as_coordinates(points, 3, "DoubleSphere.project: points")
         xi = self.xi.astype(dtype)
         alpha = self.alpha.astype(dtype)
-        x, y, z = p[..., 0], p[..., 1], p[..., 2]
-        d1 = safe_norm(p)
+        x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
+        d1 = safe_hypot(x, y, z)
         zz = xi * d1 + z
         d2 = _safe_sqrt(x * x + y * y + zz * zz)
-        valid = (d1 > 0) & jnp.isfinite(d1) & (z > -double_sphere_w2(xi, alpha) * d1)
+        valid = finite & (d1 > 0) & (z > -double_sphere_w2(xi, alpha) * d1)
         denom = alpha * d2 + (1 - alpha) * zz
         valid = valid & (denom > 0)
         inv = 1.0 / jnp.where(valid, denom, jnp.ones_like(denom))
@@ -97,16 +106,18 @@ class DoubleSphere(AbstractCamera):
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Unit rays ``(..., 3)`` of pixels ``(..., 2)`` and their validity."""
         uv, dtype = as_coordinates(uv, 2, "DoubleSphere.unproject: uv")
+        uv, finite = finite_pixels(uv)
         xi = self.xi.astype(dtype)
         alpha = self.alpha.astype(dtype)
         mx = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
         my = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)
-        measurable = jnp.isfinite(mx * mx + my * my)  # squares overflow for huge pixels: invalid, not NaN
+        measurable = measurable_radius(mx, my)
         mx, my = jnp.where(measurable, mx, 0.0), jnp.where(measurable, my, 0.0)
         r2 = mx * mx + my * my
         disc = 1 - (2 * alpha - 1) * r2
-        inside = (alpha <= 0.5) | (disc >= 0)
-        mz = (1 - alpha * alpha * r2) / (alpha * _safe_sqrt(disc) + 1 - alpha)
+        den = alpha * _safe_sqrt(disc) + 1 - alpha
+        inside = ((alpha <= 0.5) | (disc >= 0)) & (den > 0)  # den = 0: alpha = 1 at or beyond the rim
+        mz = (1 - alpha * alpha * r2) / jnp.where(den > 0, den, 1.0)
         disc2 = mz * mz + (1 - xi * xi) * r2
         inside = inside & (disc2 >= 0)
         factor = (mz * xi + _safe_sqrt(disc2)) / (mz * mz + r2)
@@ -114,4 +125,4 @@ class DoubleSphere(AbstractCamera):
         norm = safe_norm(ray, keepdims=True)
         ray = ray / jnp.where(norm > 0, norm, jnp.ones_like(norm))
         _, back = self.project(ray)
-        return finite_or_invalid(ray, inside & back & (norm[..., 0] > 0) & measurable)
+        return finite_or_invalid(ray, inside & back & (norm[..., 0] > 0) & measurable & finite)

@@ -8,16 +8,16 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import resolve_dtype, safe_norm
-from ._base import AbstractCamera, as_coordinates, check_image_size
+from .._numerics import resolve_dtype, safe_hypot
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
 
 
-def _longitude(p: Array) -> tuple[Array, Array]:
+def _longitude(x: Array, z: Array) -> tuple[Array, Array]:
     """Longitude atan2(X, Z) (radians, 0 on the optical axis, positive to the right) and the
     horizontal radius sqrt(X² + Z²), both with finite gradients on the vertical axis."""
-    horiz = safe_norm(jnp.stack([p[..., 0], p[..., 2]], axis=-1))
+    horiz = safe_hypot(x, z)
     ok = horiz > 0
-    lon = jnp.arctan2(jnp.where(ok, p[..., 0], 0.0), jnp.where(ok, p[..., 2], 1.0))
+    lon = jnp.arctan2(jnp.where(ok, x, 0.0), jnp.where(ok, z, 1.0))
     return lon, horiz
 
 
@@ -64,10 +64,10 @@ class Equirectangular(AbstractCamera):
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
         """Pixels of camera-frame points; valid inside the longitude/latitude ranges."""
         p, dtype = as_coordinates(points, 3, "Equirectangular.project: points")
-        lon, horiz = _longitude(p)
-        r = safe_norm(p)
-        ok = r > 0
-        lat = jnp.arctan2(jnp.where(ok, p[..., 1], 0.0), jnp.where(ok, horiz, 1.0))
+        x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
+        lon, horiz = _longitude(x, z)
+        ok = finite & ((x != 0) | (y != 0) | (z != 0))
+        lat = jnp.arctan2(jnp.where(ok, y, 0.0), jnp.where(ok, horiz, 1.0))
         lon0, lon1 = self.lon_min.astype(dtype), self.lon_max.astype(dtype)
         lat0, lat1 = self.lat_min.astype(dtype), self.lat_max.astype(dtype)
         u = (lon - lon0) / (lon1 - lon0) * self.width - 0.5
@@ -80,13 +80,14 @@ class Equirectangular(AbstractCamera):
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Unit rays of pixels; valid inside the image."""
         uv, dtype = as_coordinates(uv, 2, "Equirectangular.unproject: uv")
+        uv, finite = finite_pixels(uv)
         lon0, lon1 = self.lon_min.astype(dtype), self.lon_max.astype(dtype)
         lat0, lat1 = self.lat_min.astype(dtype), self.lat_max.astype(dtype)
         lon = lon0 + (uv[..., 0] + 0.5) / self.width * (lon1 - lon0)
         lat = lat0 + (uv[..., 1] + 0.5) / self.height * (lat1 - lat0)
         c = jnp.cos(lat)
         ray = jnp.stack([c * jnp.sin(lon), jnp.sin(lat), c * jnp.cos(lon)], axis=-1)
-        return ray, self.contains(uv)
+        return ray, self.contains(uv) & finite
 
 
 class Cylindrical(AbstractCamera):
@@ -132,23 +133,27 @@ class Cylindrical(AbstractCamera):
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
         """Pixels of camera-frame points; valid off the vertical axis and inside the longitude range."""
         p, dtype = as_coordinates(points, 3, "Cylindrical.project: points")
-        lon, horiz = _longitude(p)
-        ok = horiz > 0
+        x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
+        lon, horiz = _longitude(x, z)
+        ok = finite & (horiz > 0)
         lon0, lon1 = self.lon_min.astype(dtype), self.lon_max.astype(dtype)
         u = (lon - lon0) / (lon1 - lon0) * self.width - 0.5
-        v = self.f.astype(dtype) * p[..., 1] / jnp.where(ok, horiz, 1.0) + self.cy.astype(dtype)
+        v = self.f.astype(dtype) * y / jnp.where(ok, horiz, 1.0) + self.cy.astype(dtype)
         valid = ok & (lon >= lon0) & (lon <= lon1)
-        return jnp.stack([u, v], axis=-1), valid
+        return finite_or_invalid(jnp.stack([u, v], axis=-1), valid)  # v overflows near the vertical axis
 
     def unproject(
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Unit rays of pixels; valid inside the longitude range."""
         uv, dtype = as_coordinates(uv, 2, "Cylindrical.unproject: uv")
+        uv, finite = finite_pixels(uv)
         lon0, lon1 = self.lon_min.astype(dtype), self.lon_max.astype(dtype)
         lon = lon0 + (uv[..., 0] + 0.5) / self.width * (lon1 - lon0)
         y = (uv[..., 1] - self.cy.astype(dtype)) / self.f.astype(dtype)
+        measurable = jnp.isfinite(y * y)  # squares overflow for huge pixels: invalid, not NaN
+        y = jnp.where(measurable, y, 0.0)
         d = jnp.stack([jnp.sin(lon), y, jnp.cos(lon)], axis=-1)
         ray = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-        valid = (uv[..., 0] >= -0.5) & (uv[..., 0] <= self.width - 0.5)
+        valid = finite & measurable & (uv[..., 0] >= -0.5) & (uv[..., 0] <= self.width - 0.5)
         return ray, valid

@@ -9,8 +9,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_norm, stack_last
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
+from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
 from ._domain import first_increasing_limit, invert_increasing
 
 KB_THETA_MAX_MARGIN_RAD = 1e-3
@@ -136,10 +136,10 @@ class KannalaBrandt(AbstractCamera):
         """Pixels ``(..., 2)`` of camera-frame points ``(..., 3)`` and their validity."""
         p, dtype = as_coordinates(points, 3, "KannalaBrandt.project: points")
         k = self.k.astype(dtype)
-        x, y, z = p[..., 0], p[..., 1], p[..., 2]
-        chi = safe_norm(p[..., :2])
-        r = safe_norm(p)
-        nonzero = (r > 0) & jnp.isfinite(r)  # squares overflow beyond ~1e19 (float32): no direction
+        x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
+        chi = safe_hypot(x, y)
+        r = safe_hypot(x, y, z)
+        nonzero = r > 0
         theta = incidence_angle(jnp.where(nonzero, chi, 0.0), jnp.where(nonzero, z, 1.0))
         # theta_d / chi = (theta_d / θ) (θ / chi): smooth at chi = 0, exact near the back axis.
         theta_over_chi, defined = radial_ratio(theta, chi, r, z)
@@ -148,14 +148,15 @@ class KannalaBrandt(AbstractCamera):
         ratio = td_over_t * theta_over_chi
         u = self.fx.astype(dtype) * x * ratio + self.cx.astype(dtype)
         v = self.fy.astype(dtype) * y * ratio + self.cy.astype(dtype)
-        valid = defined & (theta <= self.theta_max(dtype))
-        return jnp.stack([u, v], axis=-1), valid
+        valid = finite & defined & (theta <= self.theta_max(dtype))
+        return finite_or_invalid(jnp.stack([u, v], axis=-1), valid)
 
     def unproject(
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Unit rays ``(..., 3)`` of pixels ``(..., 2)``; invalid beyond ``theta_d(theta_max)``."""
         uv, dtype = as_coordinates(uv, 2, "KannalaBrandt.unproject: uv")
+        uv, finite = finite_pixels(uv)
         k = self.k.astype(dtype)
         mx = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
         my = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)
@@ -175,4 +176,4 @@ class KannalaBrandt(AbstractCamera):
         taylor = 1 - (k[0] + 1.0 / 6.0) * td * td
         s = jnp.where(small, taylor, jnp.sin(theta) / safe_td)
         ray = stack_last([mx * s, my * s, jnp.cos(theta)])
-        return finite_or_invalid(ray, inside & converged & measurable)
+        return finite_or_invalid(ray, inside & converged & measurable & finite)

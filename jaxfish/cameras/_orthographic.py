@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import float_dtype, resolve_dtype
-from ._base import AbstractCamera, as_coordinates, check_image_size
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
 
 
 class Orthographic(AbstractCamera):
@@ -53,21 +53,23 @@ class Orthographic(AbstractCamera):
     def project(
         self, points: Float[ArrayLike, "*batch 3"]
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
-        """Pixels of camera-frame points; valid where ``Z > 0``."""
+        """Pixels of camera-frame points; valid where the point is finite, ``Z > 0`` and the pixel finite."""
         p, dtype = as_coordinates(points, 3, "Orthographic.project: points")
+        finite = jnp.all(jnp.isfinite(p), axis=-1)
+        p = jnp.where(finite[..., None], p, jnp.zeros_like(p))  # no NaN into the gradients either
         m = self.metres_per_pixel.astype(dtype)
         u = p[..., 0] / m + self.cx.astype(dtype)
         v = p[..., 1] / m + self.cy.astype(dtype)
-        return jnp.stack([u, v], axis=-1), p[..., 2] > 0
+        return finite_or_invalid(jnp.stack([u, v], axis=-1), finite & (p[..., 2] > 0))
 
     def unproject(
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
-        """Ray directions: +z for every pixel (always valid); origins from `ray_origins`."""
+        """Ray directions: +z for every pixel (valid for every finite pixel); origins from `ray_origins`."""
         uv, dtype = as_coordinates(uv, 2, "Orthographic.unproject: uv")
         shape = uv.shape[:-1]
         ray = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], dtype), shape + (3,))
-        return ray, jnp.ones(shape, dtype=bool)
+        return ray, jnp.all(jnp.isfinite(uv), axis=-1)
 
     def ray_origins(self, uv: Float[ArrayLike, "*batch 2"]) -> Float[Array, "*batch 3"]:
         """Camera-frame ray origins ``((u - cx) m, (v - cy) m, 0)`` in metres."""

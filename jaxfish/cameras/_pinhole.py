@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import resolve_dtype
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
 
 
 class Pinhole(AbstractCamera):
@@ -62,11 +62,11 @@ class Pinhole(AbstractCamera):
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
         """Pixels of camera-frame points; valid where ``Z > 0``."""
         p, dtype = as_coordinates(points, 3, "Pinhole.project: points")
-        z = p[..., 2]
-        valid = z > 0
+        x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
+        valid = finite & (z > 0)
         inv_z = 1.0 / jnp.where(valid, z, 1.0)
-        u = self.fx.astype(dtype) * p[..., 0] * inv_z + self.cx.astype(dtype)
-        v = self.fy.astype(dtype) * p[..., 1] * inv_z + self.cy.astype(dtype)
+        u = self.fx.astype(dtype) * x * inv_z + self.cx.astype(dtype)
+        v = self.fy.astype(dtype) * y * inv_z + self.cy.astype(dtype)
         return finite_or_invalid(jnp.stack([u, v], axis=-1), valid)  # u overflows for z -> 0+
 
     def unproject(
@@ -74,9 +74,10 @@ class Pinhole(AbstractCamera):
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
         """Unit rays of pixels (valid unless the coordinates are too large to square)."""
         uv, dtype = as_coordinates(uv, 2, "Pinhole.unproject: uv")
+        uv, finite = finite_pixels(uv)
         x = (uv[..., 0] - self.cx.astype(dtype)) / self.fx.astype(dtype)
         y = (uv[..., 1] - self.cy.astype(dtype)) / self.fy.astype(dtype)
         ok = jnp.isfinite(x * x + y * y)  # squares overflow for huge pixels: invalid, not NaN
         x, y = jnp.where(ok, x, 0.0), jnp.where(ok, y, 0.0)
         d = jnp.stack([x, y, jnp.ones_like(x)], axis=-1)
-        return d / jnp.linalg.norm(d, axis=-1, keepdims=True), ok
+        return d / jnp.linalg.norm(d, axis=-1, keepdims=True), ok & finite

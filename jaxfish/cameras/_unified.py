@@ -14,7 +14,15 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import resolve_dtype, safe_norm
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
+from ._base import (
+    AbstractCamera,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    finite_pixels,
+    measurable_radius,
+    point_direction,
+)
 
 
 def _safe_sqrt(x: Array) -> Array:
@@ -42,9 +50,8 @@ def eucm_project(cam, points, alpha, beta, name: str):
     p, dtype = as_coordinates(points, 3, f"{name}.project: points")
     alpha = alpha.astype(dtype)
     beta = beta.astype(dtype)
-    x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    r = safe_norm(p)
-    nonzero = (r > 0) & jnp.isfinite(r)
+    x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
+    nonzero = finite & ((x != 0) | (y != 0) | (z != 0))
     d = _safe_sqrt(beta * (x * x + y * y) + z * z)
     w = unified_w(alpha)
     valid = nonzero & (z > -w * d)
@@ -59,19 +66,21 @@ def eucm_project(cam, points, alpha, beta, name: str):
 def eucm_unproject(cam, uv, alpha, beta, name: str):
     """Shared EUCM unprojection (UCM is beta = 1); rays are normalised."""
     uv, dtype = as_coordinates(uv, 2, f"{name}.unproject: uv")
+    uv, finite = finite_pixels(uv)
     alpha = alpha.astype(dtype)
     beta = beta.astype(dtype)
     mx, my = _pixels_to_m(cam, uv, dtype)
-    measurable = jnp.isfinite(mx * mx + my * my)  # squares overflow for huge pixels: invalid, not NaN
+    measurable = measurable_radius(mx, my)
     mx, my = jnp.where(measurable, mx, 0.0), jnp.where(measurable, my, 0.0)
     r2 = mx * mx + my * my
     disc = 1 - (2 * alpha - 1) * beta * r2
-    inside = (alpha <= 0.5) | (disc >= 0)
-    mz = (1 - beta * alpha * alpha * r2) / (alpha * _safe_sqrt(disc) + (1 - alpha))
+    den = alpha * _safe_sqrt(disc) + (1 - alpha)
+    inside = ((alpha <= 0.5) | (disc >= 0)) & (den > 0)  # den = 0: alpha = 1 at or beyond the domain's rim
+    mz = (1 - beta * alpha * alpha * r2) / jnp.where(den > 0, den, 1.0)
     ray = jnp.stack([mx, my, mz], axis=-1)
     ray = ray / safe_norm(ray, keepdims=True)
     _, back = eucm_project(cam, ray, alpha, beta, name)
-    return finite_or_invalid(ray, inside & back & measurable)
+    return finite_or_invalid(ray, inside & back & measurable & finite)
 
 
 def eucm_theta_max(alpha: Array, beta: Array) -> Array:

@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_norm, stack_last
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
+from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
 from ._domain import first_increasing_limit, invert_increasing
 
 THETA_MAX_MARGIN_RAD = 1e-3
@@ -186,18 +186,18 @@ class WoodScapeFisheye(AbstractCamera):
         k = self.k.astype(dtype)
         cx, cy = self._principal_point(dtype)
         a = self.aspect_ratio.astype(dtype)
-        x, y, z = p[..., 0], p[..., 1], p[..., 2]
-        chi = safe_norm(p[..., :2])
-        r = safe_norm(p)
-        nonzero = (r > 0) & jnp.isfinite(r)  # squares overflow beyond ~1e19 (float32): no direction
+        x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
+        chi = safe_hypot(x, y)
+        r = safe_hypot(x, y, z)
+        nonzero = r > 0
         theta = incidence_angle(jnp.where(nonzero, chi, 0.0), jnp.where(nonzero, z, 1.0))
         # rho(θ)/chi = (rho(θ)/θ) · (θ/chi): smooth at chi = 0, exact near the back axis.
         theta_over_chi, defined = radial_ratio(theta, chi, r, z)
         ratio = _rho_over_theta(k, theta) * theta_over_chi
         u = x * ratio + cx
         v = y * ratio * a + cy
-        valid = defined & (theta <= self.theta_max(dtype))
-        return jnp.stack([u, v], axis=-1), valid
+        valid = finite & defined & (theta <= self.theta_max(dtype)) & (k[..., 0] > 0)
+        return finite_or_invalid(jnp.stack([u, v], axis=-1), valid)
 
     @eqx.filter_jit
     def unproject(
@@ -209,7 +209,10 @@ class WoodScapeFisheye(AbstractCamera):
         Newton solve that did not converge. Invalid rays are finite placeholders.
         """
         uv, dtype = as_coordinates(uv, 2, "WoodScapeFisheye.unproject: uv")
+        uv, finite = finite_pixels(uv)
         k = self.k.astype(dtype)
+        lens = k[..., 0] > 0  # k1 <= 0: no valid ray (solve a harmless lens instead of dividing by k1)
+        k = jnp.where(lens, k, jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype))
         cx, cy = self._principal_point(dtype)
         a = self.aspect_ratio.astype(dtype)
         x = uv[..., 0] - cx
@@ -231,4 +234,4 @@ class WoodScapeFisheye(AbstractCamera):
         taylor = 1.0 / k[0] - k[1] * rho / k[0] ** 3
         s = jnp.where(small, taylor, jnp.sin(theta) / safe_rho)
         ray = stack_last([x * s, y * s, jnp.cos(theta)])
-        return finite_or_invalid(ray, inside & converged & measurable)
+        return finite_or_invalid(ray, inside & converged & measurable & finite & lens)

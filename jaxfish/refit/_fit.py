@@ -221,7 +221,9 @@ def _residuals(cam, rot, t, corr, loss_code, loss_scale):
     pc = jnp.einsum("nij,nj->ni", rot[corr.view], corr.points) + t[corr.view]
     uv, _ = cam.project(pc)
     res = uv - corr.pixels
-    factor = _robust_factor(jnp.sum(res * res, axis=-1), loss_code, loss_scale) * jnp.sqrt(corr.weight)
+    w = corr.weight
+    root_w = jnp.where(w > 0, jnp.sqrt(jnp.where(w > 0, w, 1.0)), 0.0)  # d sqrt(w)/dw is infinite at 0: 0, not NaN
+    factor = _robust_factor(jnp.sum(res * res, axis=-1), loss_code, loss_scale) * root_w
     return res * factor[:, None]
 
 
@@ -243,8 +245,9 @@ def reprojection_residuals(
     scaled by ``sqrt(weight_i rho(s_i) / s_i)`` so that ``sum |r_i|²`` is the robust objective.
 
     Differentiable in the camera, the poses (world-to-camera, batched ``(n_views,)``; identity
-    if None) and the correspondences.
-    """
+    if None) and the correspondences (the gradient with respect to a weight of exactly 0 is 0:
+    the residual's own derivative there is infinite). Points the camera reports invalid keep
+    the camera's finite placeholder residual (see ``docs/refit.md``)."""
     if loss not in LOSSES:
         raise ValueError(f"unknown robust loss {loss!r} (known: {', '.join(LOSSES)})")
     corr = correspondences

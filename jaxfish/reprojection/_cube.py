@@ -95,6 +95,8 @@ class CubeRig(AbstractCamera):
             raise ValueError(f"CubeRig.project_faces: points must have shape (..., 3), got {p.shape}")
         dtype = float_dtype(p)
         p = p.astype(dtype)
+        finite = jnp.all(jnp.isfinite(p), axis=-1)  # a non-finite point would put NaN into the rotations' gradient
+        p = jnp.where(finite[..., None], p, jnp.zeros_like(p))
         rots = self.face_to_camera.rotation_matrix.astype(dtype)  # (F, 3, 3)
         axes = rots[:, :, 2]  # each face's optical axis in the rig frame, (F, 3)
         along = jnp.einsum("...k,fk->...f", p, axes)
@@ -102,7 +104,7 @@ class CubeRig(AbstractCamera):
         r_sel = rots[idx]  # (..., 3, 3)
         local = jnp.einsum("...kj,...k->...j", r_sel, p)  # R^T p
         uv, valid = self.face.project(local)
-        valid = valid & self.face.contains(uv)
+        valid = finite & valid & self.face.contains(uv)
         return idx, uv, valid
 
     def project(
