@@ -14,7 +14,8 @@ from ._app import app, console, fail, say
 
 def demo_config(scale: float):
     """The capture settings of the demo at ``scale`` (1 = SynWoodScape's sizes: fisheye 1280 x 966,
-    BEV 1024 px at 0.04 m per pixel; faces just large enough not to undersample the fisheye). The
+    BEV 1024 px at 0.04 m per pixel; 768-px cube faces, the embedded capture's default: smaller than
+    `jaxfish.reprojection.cube_face_size`'s 1792 px, so the fisheye centre is slightly undersampled). The
     BEV keeps its ground coverage (metres per pixel grow as its size shrinks)."""
     from ..scene import CaptureConfig
 
@@ -61,6 +62,10 @@ def demo(
         raise fail(f"--frames must be at least 1, got {frames}")
     if not 0.01 <= scale <= 1.0:
         raise fail(f"--scale must lie in [0.01, 1], got {scale}")
+    if seed < 0:
+        raise fail(f"--seed must be a non-negative integer, got {seed}")
+    if workers is not None and workers < 1:
+        raise fail(f"--workers must be at least 1, got {workers}")
     start = time.perf_counter()
     rig = demo_rig(scale)
     config = demo_config(scale)

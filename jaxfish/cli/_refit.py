@@ -18,6 +18,41 @@ def _write_json(path: Path, data: Any) -> None:
     atomic_write_text(path, json.dumps(data, indent=2) + "\n")
 
 
+def _model_option(model: str | None) -> str | None:
+    """``--model``/``--to`` as a canonical lens model name, or a clear error naming the option."""
+    from ..refit import canonical_model_name
+
+    if model is None:
+        return None
+    try:
+        return canonical_model_name(model)
+    except ValueError as e:
+        raise fail(f"--model/--to {model!r}: {e}") from None
+
+
+def _write_outputs(calibration, out: Path, report: Path | None, summary: dict[str, Any] | None) -> None:
+    """The calibration (after checking every parameter is finite) and the report: both or neither
+    (a report that cannot be written removes the calibration just written)."""
+    import numpy as np
+
+    from ..io import save_camera_calibration
+    from ..refit import intrinsics_vector
+
+    values = np.asarray(intrinsics_vector(calibration.camera))
+    if not np.all(np.isfinite(values)):
+        raise fail(f"--out {out}: not written, the fitted parameters are not finite ({values.tolist()})", code=1)
+    existed = out.exists()
+    save_camera_calibration(calibration, out)
+    if report is None:
+        return
+    try:
+        _write_json(report, summary)
+    except OSError as e:
+        if not existed:
+            out.unlink(missing_ok=True)
+        raise fail(f"--report {report}: {e.strerror or e}; {out} not written either") from None
+
+
 def _pose_dict(pose) -> dict[str, list[float]]:
     import numpy as np
 
@@ -62,13 +97,14 @@ def refit(
 ) -> None:
     """Fit a lens model's intrinsics (and poses) to 2D-3D correspondences; write the calibration and a report."""
     check_outputs(out=out, report=report)
+    model = _model_option(model)
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 
     from ..calibration import Calibration
-    from ..io import load_camera_calibration, load_correspondences, save_camera_calibration
+    from ..io import load_camera_calibration, load_correspondences
     from ..refit import Correspondences, canonical_model_name, convert_camera
     from ..refit import refit as run_refit
     from ..transforms import Pose
@@ -79,8 +115,11 @@ def refit(
         calib = load_camera_calibration(calibration, dtype=np.float64)
         camera, mount = calib.camera, calib.camera_to_vehicle
         name, flavor = calib.name, calib.flavor
-        if model is not None and canonical_model_name(model) != canonical_model_name(camera):
-            camera = convert_camera(camera, model).camera
+        if model is not None and model != canonical_model_name(camera):
+            try:
+                camera = convert_camera(camera, model).camera
+            except ValueError as e:
+                raise fail(f"{calibration}: {e}") from None
     else:
         if model is None or width is None or height is None:
             raise fail("without --calibration, give --model, --width and --height")
@@ -103,7 +142,6 @@ def refit(
         raise fail(f"{correspondences}: {e}") from None
     if frame == "vehicle" and pose_fitted:
         mount = Pose(result.poses.rotation_matrix[0], result.poses.translation[0]).inverse()
-    save_camera_calibration(Calibration(name, result.camera, mount, flavor), out)
     names = view_names if frame != "vehicle" else ["vehicle"]
     std = dict(zip(result.parameter_names, np.asarray(result.standard_deviations).tolist(), strict=True))
     pnames = [n for n in result.parameter_names if not n.startswith("view")]
@@ -127,6 +165,7 @@ def refit(
         f"{summary['num_steps']} steps, converged={summary['converged']}")
     for k in pnames:
         say(f"  {k} = {values[k]:.6g} ± {std[k]:.2g}")
+    full = None
     if report is not None:
         view = np.asarray(corr.view)
         res = np.asarray(result.residuals)
@@ -137,7 +176,7 @@ def refit(
         full["residuals_px"] = {n: res[view == i].tolist() for i, n in enumerate(names)}
         full["covariance"] = {"names": list(result.parameter_names),
                               "matrix": np.asarray(result.covariance).tolist()}
-        _write_json(report, full)
+    _write_outputs(Calibration(name, result.camera, mount, flavor), out, report, full)
     say(f"wrote {out}")
     if not bool(result.converged):
         raise typer.Exit(1)
@@ -155,23 +194,22 @@ def convert(
 ) -> None:
     """Convert a calibration to another lens model, reporting the max and RMS reprojection difference."""
     check_outputs(out=out, report=report)
+    target = _model_option(to)
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 
     from ..calibration import Calibration
-    from ..io import load_camera_calibration, save_camera_calibration
+    from ..io import load_camera_calibration
     from ..refit import canonical_model_name, convert_camera
 
     calib = load_camera_calibration(calibration, dtype=np.float64)
     try:
-        target = canonical_model_name(to)
         result = convert_camera(calib.camera, target, fov=fov,
                                 theta_max=None if theta_max_deg is None else math.radians(theta_max_deg))
     except ValueError as e:
-        raise fail(str(e)) from None
-    save_camera_calibration(Calibration(calib.name, result.camera, calib.camera_to_vehicle, calib.flavor), out)
+        raise fail(f"{calibration}: {e}") from None
     summary = {
         "source_model": canonical_model_name(calib.camera), "target_model": target,
         "max_px": float(result.max_px), "rms_px": float(result.rms_px),
@@ -185,6 +223,5 @@ def convert(
         f"rms {summary['rms_px']:.4g} px (inside the image: max {summary['max_px_in_image']:.4g}, "
         f"rms {summary['rms_px_in_image']:.4g}); {summary['num_target_invalid']} of {summary['num_samples']} rays "
         f"outside the target's domain")
-    if report is not None:
-        _write_json(report, summary)
+    _write_outputs(Calibration(calib.name, result.camera, calib.camera_to_vehicle, calib.flavor), out, report, summary)
     say(f"wrote {out}")

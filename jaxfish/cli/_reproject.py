@@ -20,6 +20,9 @@ _KINDS = ("rgb", "label", "depth")
 _OUT_EXTS = (".png", ".exr", ".npy")
 _FACE_EXTS = (".png", ".exr")
 
+MAX_OUTPUT_PIXELS = 16384 * 16384
+"""The largest target image `jaxfish reproject` renders (width x height)."""
+
 
 def _check_options(kind: str, out: Path, supersample: int) -> None:
     if kind not in _KINDS:
@@ -39,9 +42,14 @@ def _prepare(images, kind: str, names: list[str]):
 
     from .._errors import ImageError
 
-    dtypes = {a.dtype for a in images}
-    if len(dtypes) != 1:
-        raise ImageError(f"{names[0]}: all inputs must share one pixel type, got {sorted(str(d) for d in dtypes)}")
+    for name, a in zip(names, images, strict=True):  # name the first file that differs from the first one
+        if a.dtype != images[0].dtype:
+            raise ImageError(f"{name}: pixel type {a.dtype}, but {names[0]} is {images[0].dtype}: "
+                             "all inputs must share one pixel type")
+        if a.shape != images[0].shape:
+            raise ImageError(f"{name}: {a.shape[1]}x{a.shape[0]} with {a.shape[2]} channel(s), but {names[0]} is "
+                             f"{images[0].shape[1]}x{images[0].shape[0]} with {images[0].shape[2]}: "
+                             "all inputs must share one size and channel count")
     x = np.stack(images)
     if kind == "label":
         if not np.issubdtype(x.dtype, np.integer):
@@ -268,6 +276,8 @@ def reproject(
         h = height or cam.height
         if w <= 0 or h <= 0:
             raise ImageError(f"--width/--height must be positive, got {w}x{h}")
+        if w * h > MAX_OUTPUT_PIXELS:  # XLA aborts the process on buffers it cannot allocate
+            raise ImageError(f"--width/--height {w}x{h}: more than {MAX_OUTPUT_PIXELS} pixels (16384 x 16384)")
         if to == "pinhole":
             f_deg = 90.0 if fov is None else fov
             if not 0 < f_deg < 180:

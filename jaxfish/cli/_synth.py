@@ -30,6 +30,8 @@ def synth(
 
     if frames < 1:
         raise fail(f"--frames must be at least 1, got {frames}")
+    if seed < 0:
+        raise fail(f"--seed must be a non-negative integer, got {seed}")
     if face_size < 8:
         raise fail(f"--face-size must be at least 8 pixels, got {face_size}")
     if bev_size < 8 or front_width < 8 or dvs_substeps < 1:

@@ -491,7 +491,10 @@ def _run_dask(capture_dir: str, out_dir: str, frames: list[int], options: BuildO
         raise DatasetError("dask.distributed is not installed: pip install 'jaxfish[distributed]'") from e
     cluster = None
     if scheduler is not None:
-        client = Client(scheduler)
+        try:
+            client = Client(scheduler)
+        except (ValueError, OSError, TimeoutError) as e:  # a malformed or unreachable address
+            raise DatasetError(f"scheduler {scheduler!r}: cannot connect ({type(e).__name__}: {e})") from None
     else:
         cluster = local_cluster(int(workers or 1), processes=processes)
         client = Client(cluster)

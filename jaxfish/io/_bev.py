@@ -8,7 +8,6 @@ occupancy grid, each PNG carrying the BEV scale and axes as metadata (`BEV_METAD
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Mapping
@@ -19,6 +18,7 @@ import numpy as np
 
 from .._errors import ImageError, JaxfishError
 from ._images import PNG_LEVEL, read_image_metadata, write_image
+from ._json import read_json
 from ._labels import _carla_version, _frame_motion, compiled_pixel_rays, write_depth_npy
 
 BEV_METADATA_ATTRIBUTE = "jaxfish:bev"
@@ -153,10 +153,7 @@ def load_bev_calibration(path: str | os.PathLike) -> tuple[Any, Any]:
     if not path.is_file():
         raise ImageError(f"{path}: BEV calibration file not found")
     if path.suffix.lower() == ".json":
-        try:
-            meta = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise ImageError(f"{path}: invalid JSON ({e})") from e
+        meta = read_json(path, ImageError)
     else:
         meta = read_bev_metadata(path)
     return bev_from_metadata(meta, str(path))

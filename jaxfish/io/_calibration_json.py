@@ -19,6 +19,7 @@ from ..calibration import (
 )
 from ..cameras import WoodScapeFisheye
 from ..transforms import CARLA_TO_ISO, Pose
+from ._json import read_json
 
 _WOODSCAPE_T = "translation"
 _SYNWOODSCAPE_T = "translation used in CARLA (CARLA reference)"
@@ -34,9 +35,14 @@ def _fail(source: str, field: str, message: str) -> CalibrationError:
 def _number(value: Any, source: str, field: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise _fail(source, field, f"expected a number, got {type(value).__name__} {value!r}")
-    if not math.isfinite(value):
-        raise _fail(source, field, f"expected a finite number, got {value!r}")
-    return float(value)
+    try:
+        number = float(value)  # an integer beyond ~1.8e308 has no float
+    except OverflowError:
+        number = math.inf
+    if not math.isfinite(number):
+        text = repr(value) if isinstance(value, float) or len(str(value)) < 40 else f"an integer of {len(str(value))} digits"
+        raise _fail(source, field, f"expected a finite number, got {text}")
+    return number
 
 
 def _vector(value: Any, n: int, source: str, field: str) -> np.ndarray:
@@ -139,13 +145,7 @@ def load_calibration(path: str | os.PathLike, *, apply_errata: bool = False, dty
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: calibration file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-        data = json.loads(text)
-    except UnicodeDecodeError as e:
-        raise CalibrationError(f"{path}: not a UTF-8 text file ({e})") from None
-    except json.JSONDecodeError as e:
-        raise CalibrationError(f"{path}: invalid JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+    data = read_json(path, CalibrationError)
     return calibration_from_dict(data, source=str(path), apply_errata=apply_errata, dtype=dtype)
 
 

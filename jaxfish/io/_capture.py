@@ -55,6 +55,7 @@ from ._carla import (
     rgb_to_bgra,
 )
 from ._images import read_image, write_image
+from ._json import read_json
 
 CAPTURE_FORMAT = "jaxfish-capture"
 """Format name and version stored in ``capture.json``."""
@@ -293,6 +294,10 @@ def synthesize_capture(
 
     ``progress`` is called with a short description after every step (a camera, a view, ...).
     """
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
+        raise CaptureError(f"synthesize_capture: seed must be an integer from 0 to 2**63 - 1, got {seed!r}")
+    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or int(frames) < 1:
+        raise CaptureError(f"synthesize_capture: frames must be a positive integer, got {frames!r}")
     config = config or CaptureConfig()
     mounts = sensor_mounts(rig, config)
     write_capture_header(root, rig, config, mounts, seed=seed)
@@ -425,10 +430,7 @@ class CaptureReader:
         header = self.root / "capture.json"
         if not header.is_file():
             raise CaptureError(f"{header}: not a capture directory (capture.json missing)")
-        try:
-            self.meta: dict[str, Any] = json.loads(header.read_text())
-        except json.JSONDecodeError as e:
-            raise CaptureError(f"{header}: invalid JSON ({e})") from e
+        self.meta: dict[str, Any] = read_json(header, CaptureError, obj=True)
         for key in ("format", "version", "frames", "cameras", "faces"):
             if key not in self.meta:
                 raise CaptureError(f"{header}: field '{key}' missing")
@@ -469,10 +471,7 @@ class CaptureReader:
     def _read_json(self, path: Path) -> Any:
         if not path.is_file():
             raise CaptureError(f"{path}: file missing")
-        try:
-            return json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise CaptureError(f"{path}: invalid JSON ({e})") from e
+        return read_json(path, CaptureError, obj=True)
 
     def _frame(self, frame: int) -> Path:
         d = frame_dir(self.root, frame)
@@ -530,6 +529,8 @@ class CaptureReader:
 
         path = self._frame(frame) / "cameras" / camera / face / "dvs.npy"
         ev = self._npy(path, dtype=DVS_EVENT_DTYPE)
+        if ev.ndim != 1:
+            raise CaptureError(f"{path}: expected a 1-D array of events, got shape {ev.shape}")
         size = self.meta.get("face_size")
         if size is not None and ev.size:
             for axis in ("x", "y"):
@@ -542,7 +543,13 @@ class CaptureReader:
         """The ``"bev"`` or ``"front"`` camera's images (``actor_ids``: see `read_images`)."""
         reuse = None if self._reuse_key is None else self._reuse_key + (name,)
         spec = self.sensors().get(name)
-        size = (int(spec["height"]), int(spec["width"])) if isinstance(spec, dict) and "width" in spec and "height" in spec else None
+        size = None
+        if isinstance(spec, dict) and "width" in spec and "height" in spec:
+            try:
+                size = (int(spec["height"]), int(spec["width"]))
+            except (TypeError, ValueError):
+                raise CaptureError(f"{self.root / 'sensors.json'}: field '{name}.width/height': expected whole numbers, "
+                                   f"got {spec['width']!r} x {spec['height']!r}") from None
         return read_images(self._frame(frame) / name, instant, actor_ids=actor_ids, reuse=reuse, size=size)
 
     def height(self, frame: int, name: str = "bev") -> np.ndarray:

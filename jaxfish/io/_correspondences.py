@@ -43,6 +43,7 @@ from ..cameras import WoodScapeFisheye
 from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict
 from ..transforms import CARLA_TO_ISO, Pose
 from ._calibration_json import _SYNWOODSCAPE_T, _WOODSCAPE_T, calibration_from_dict, calibration_to_dict
+from ._json import read_json
 
 CORRESPONDENCE_FRAMES: tuple[str, ...] = ("board", "vehicle", "camera")
 """Values of a correspondences file's ``frame``."""
@@ -53,19 +54,14 @@ class CorrespondenceError(JaxfishError):
 
 
 def _read_json(path: Path, error: type[JaxfishError]) -> Any:
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: file not found")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as e:
-        raise error(f"{path}: not a UTF-8 text file ({e})") from None
-    except json.JSONDecodeError as e:
-        raise error(f"{path}: invalid JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+    return read_json(path, error)
 
 
 def _array(value: Any, cols: int | None, source: str, field: str) -> np.ndarray:
     try:
         a = np.asarray(value, dtype=np.float64)
+    except OverflowError:  # an integer beyond ~1.8e308
+        raise CorrespondenceError(f"{source}: field '{field}': values must be finite") from None
     except (TypeError, ValueError):
         raise CorrespondenceError(f"{source}: field '{field}': expected a list of numbers") from None
     if cols is not None and (a.ndim != 2 or a.shape[1] != cols):

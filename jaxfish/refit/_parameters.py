@@ -158,9 +158,16 @@ def intrinsics_from_dict(data: Mapping[str, Any], *, source: str = "<intrinsic>"
         if key not in data:
             continue
         val = data[key]
-        if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
-            raise ValueError(f"{source}: field 'intrinsic.{key}': expected a finite number, got {val!r}")
-        values[key] = float(val)
+        try:
+            number = math.nan if isinstance(val, bool) or not isinstance(val, (int, float)) else float(val)
+        except OverflowError:  # an integer beyond ~1.8e308
+            number = math.inf
+        if not math.isfinite(number):
+            shown = f"an integer of {len(str(val))} digits" if isinstance(val, int) and len(str(val)) > 40 else repr(val)
+            raise ValueError(f"{source}: field 'intrinsic.{key}': expected a finite number, got {shown}")
+        if key in ("fx", "fy") and number <= 0:
+            raise ValueError(f"{source}: field 'intrinsic.{key}': a focal length must be positive, got {val!r}")
+        values[key] = number
     for key in ("width", "height"):
         if values[key] <= 0 or values[key] != int(values[key]):
             raise ValueError(f"{source}: field 'intrinsic.{key}': expected a positive whole number, got {data[key]!r}")

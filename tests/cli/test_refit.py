@@ -120,3 +120,35 @@ def test_build_options_reject_a_non_finite_motion_threshold():
     for bad in (float("nan"), float("inf"), -0.1):
         with pytest.raises(DatasetError, match="motion_threshold_m"):
             BuildOptions(motion_threshold_m=bad)
+
+
+def test_hostile_calibration_files_and_models_get_one_clear_error(tmp_path):
+    src = json.loads(shared_path("calibration/woodscape/FV.json").read_text())
+    runner = CliRunner()
+    huge = json.dumps({**src, "intrinsic": {**src["intrinsic"], "k2": "HUGE"}}).replace('"HUGE"', "1" + "0" * 400)
+    cases = {"huge.json": (huge, "field 'intrinsic.k2': expected a finite number, got an integer of 401 digits"),
+             "deep.json": ("[" * 100000 + "]" * 100000, "nested too deeply"),
+             "null.json": ("null", "field '<root>': expected an object")}
+    for name, (text, message) in cases.items():
+        (tmp_path / name).write_text(text)
+        result = runner.invoke(app, ["convert", str(tmp_path / name), "--to", "kb", "-o", str(tmp_path / "x.json")])
+        assert result.exit_code != 0 and message in str(result.exception or result.output), (name, result.output)
+        assert not (tmp_path / "x.json").exists()
+    kb = {"intrinsic": {"model": "kannala_brandt", "fx": 0.0, "fy": 300.0, "cx": 640.0, "cy": 480.0, "k1": 0.0,
+                        "k2": 0.0, "k3": 0.0, "k4": 0.0, "width": 1280, "height": 966}}
+    kb = {**src, **kb}
+    (tmp_path / "fx0.json").write_text(json.dumps(kb))
+    result = runner.invoke(app, ["convert", str(tmp_path / "fx0.json"), "--to", "kb", "-o", str(tmp_path / "x.json")])
+    assert "field 'intrinsic.fx': a focal length must be positive" in str(result.exception), result.output
+    result = runner.invoke(app, ["refit", str(tmp_path / "fx0.json"), "--model", "nosuch", "-o", str(tmp_path / "x.json")])
+    assert result.exit_code == 2 and "--model/--to 'nosuch': unknown lens model" in result.output, result.output
+
+
+def test_convert_writes_its_calibration_and_report_both_or_neither(tmp_path):
+    src = shared_path("calibration/woodscape/FV.json")
+    blocker = tmp_path / "file"
+    blocker.write_text("")  # a file where the report's folder should be: the report cannot be written
+    result = CliRunner().invoke(app, ["convert", str(src), "--to", "kb", "-o", str(tmp_path / "kb.json"),
+                                      "-r", str(blocker / "report.json")])
+    assert result.exit_code == 2 and "--report" in result.output and "not written either" in result.output, result.output
+    assert not (tmp_path / "kb.json").exists()

@@ -138,6 +138,12 @@ def test_cube2fisheye_errors_leave_no_output(tmp_path, small_calibration):
     assert result.exit_code != 0 and "depthisfloatmetres" in text
     result, text = _run("cube2fisheye", "--faces", faces, "-c", calib_path, "-o", out, "--kind", "labels")
     assert result.exit_code != 0 and "--kind" in text
+    write_image(faces / "top.png", np.zeros((S, S), np.uint8))  # one channel among RGB faces: named, no traceback
+    result, text = _run("cube2fisheye", "--faces", faces, "-c", calib_path, "-o", out)
+    assert result.exit_code != 0 and "top.png:" in text and "channel(s),but" in text, text
+    write_image(faces / "top.png", np.zeros((S, S, 3), np.uint16))
+    result, text = _run("cube2fisheye", "--faces", faces, "-c", calib_path, "-o", out)
+    assert result.exit_code != 0 and "top.png:pixeltypeuint16" in text, text
     assert not out.exists() and not list(tmp_path.glob("*.part*")) and not list(faces.glob(".*"))
 
 
@@ -210,7 +216,8 @@ def test_bad_numbers_and_output_paths_are_one_line_errors(tmp_path, small_calibr
     calib_path, _ = small_calibration
     src = write_image(tmp_path / "in.png", np.zeros((H, W, 3), np.uint8))
     for args, text in ((("--pitch", "inf"), "--pitchmustbeafinite"), (("--yaw", "nan"), "--yawmustbeafinite"),
-                       (("--width", 0), "--widthmustbeapositive")):
+                       (("--width", 0), "--widthmustbeapositive"),
+                       (("--width", 100000, "--height", 100000), "100000x100000:morethan")):
         result, out = _run("reproject", src, "-c", calib_path, "-o", tmp_path / "o.png", *args)
         assert result.exit_code == 2 and text in out, out
     (tmp_path / "adir").mkdir()

@@ -91,6 +91,36 @@ def test_reader_errors_name_the_file(tmp_path, capture):
         reader.face(0, "FV", "front", "next")
 
 
+def test_hostile_capture_files_name_the_file_and_field(tmp_path, capture):
+    import shutil
+
+    for text, message in (("null", "capture.json: expected a JSON object"),
+                          (b"\xff\xfe{", "capture.json: not a UTF-8 text file"),
+                          ("[" * 100000, "capture.json: JSON nested too deeply")):
+        bad = tmp_path / "bad"
+        bad.mkdir(exist_ok=True)
+        target = bad / "capture.json"
+        target.write_bytes(text) if isinstance(text, bytes) else target.write_text(text)
+        with pytest.raises(CaptureError, match=message):
+            CaptureReader(bad)
+    root, *_ = capture
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    reader = CaptureReader(copy)
+    dvs = copy / "frames" / "000000" / "cameras" / "FV" / "front" / "dvs.npy"
+    np.save(dvs, np.zeros((), DVS_EVENT_DTYPE))
+    with pytest.raises(CaptureError, match=r"dvs\.npy: expected a 1-D array of events"):
+        reader.dvs(0, "FV", "front")
+    sensors = json.loads((copy / "sensors.json").read_text())
+    sensors["bev"]["width"] = "abc"
+    (copy / "sensors.json").write_text(json.dumps(sensors))
+    with pytest.raises(CaptureError, match=r"sensors\.json: field 'bev\.width/height'"):
+        CaptureReader(copy).view(0, "bev")
+    with pytest.raises(CaptureError, match="seed must be an integer"):
+        synthesize_capture(tmp_path / "never", {}, seed=-1)
+    assert not (tmp_path / "never").exists()  # refused before anything is written
+
+
 def test_reuse_decoded_prev_images_that_copy_the_previous_curr(tmp_path, capture):
     import shutil
 
