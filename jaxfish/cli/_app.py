@@ -53,7 +53,10 @@ def main() -> None:
     try:
         app()
     except (JaxfishError, OSError) as e:  # a missing, existing, unreadable or unwritable path
-        print_error(e)
+        if isinstance(e, OSError) and not isinstance(e, JaxfishError) and e.filename is not None and e.strerror:
+            print_error(f"{e.filename}: {e.strerror}")  # not Python's "[Errno 17] File exists: 'path'"
+        else:
+            print_error(e)
         sys.exit(2)
 
 

@@ -435,6 +435,12 @@ def build_dataset(
     from ..io import CaptureReader
 
     options = options or BuildOptions()
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise DatasetError(f"workers must be an integer >= 1, got {workers!r}")
+    if frames is not None:
+        bad = [f for f in frames if isinstance(f, bool) or not isinstance(f, (int, np.integer))]
+        if bad:
+            raise DatasetError(f"frames must be integer frame numbers, got {bad[0]!r}")
     start = time.perf_counter()
     reader = CaptureReader(capture_dir)  # a missing / malformed header stops the build here
     reader.rig()  # so do the calibrations and (for the BEV) sensors.json, before anything is written

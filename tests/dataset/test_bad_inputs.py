@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxfish import CalibrationError
-from jaxfish.dataset import build_dataset, remove_sample_files
+from jaxfish.dataset import DatasetError, build_dataset, remove_sample_files
 from jaxfish.io import CaptureError, write_image
 
 
@@ -139,3 +139,14 @@ def test_a_bad_calibration_never_replaces_a_finished_datasets_copy(small_capture
     with pytest.raises(CalibrationError):
         build_dataset(cap, out)
     assert (out / "calibration_data/FV.json").read_bytes() == good
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"workers": 0}, "workers must be an integer >= 1"),
+    ({"frames": [0.5]}, "frames must be integer frame numbers, got 0.5"),
+    ({"frames": ["a"]}, "frames must be integer frame numbers, got 'a'"),
+    ({"scheduler": "notanaddress"}, "scheduler 'notanaddress': cannot connect"),
+])
+def test_bad_build_arguments_are_named(small_capture, tmp_path, kwargs, message):
+    with pytest.raises(DatasetError, match=message):
+        build_dataset(small_capture, tmp_path / "out", **kwargs)
