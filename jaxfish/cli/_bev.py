@@ -186,11 +186,20 @@ def bev(
     from .._errors import JaxfishError
 
     written: list[Path] = []
+    folders = [out / "fused", out / "ipm", out / "truth", out]  # innermost first
+    new_folders = [d for d in folders if not d.exists()]
     try:
         per_sample, pooled = _run(items, out, kind, written)
-    except JaxfishError as e:
+    except (JaxfishError, OSError) as e:  # a bad input, or a file that cannot be written
         for p in written:  # no top views without their scores: this run's files go
             p.unlink(missing_ok=True)
+        for d in new_folders:  # and the folders it created, if nothing else is in them
+            try:
+                d.rmdir()
+            except OSError:
+                pass
+        if isinstance(e, OSError) and not isinstance(e, JaxfishError) and e.filename is not None:
+            raise fail(f"{e.filename}: {e.strerror}") from None
         raise fail(str(e)) from None
     _report(source, kind, out, per_sample, pooled)
 

@@ -102,9 +102,14 @@ def test_bev_errors_name_the_file(dataset, tmp_path):
         result = CliRunner().invoke(app, ["bev", str(root), "--out", str(tmp_path / "o2")])
         text = result.output.replace("\n", "")
         assert result.exit_code == 2 and "00007_MVR.npy" in text and "not a readable .npy" in text, text
-        assert not [p for p in (tmp_path / "o2").rglob("*") if p.is_file()]  # the samples before it are gone too
+        assert not (tmp_path / "o2").exists()  # the samples before it are gone too, and the folders it made
     finally:
         target.write_bytes(good)
+    (tmp_path / "o3" / "ipm" / "00007_semantic.png").mkdir(parents=True)  # a file that cannot be written
+    result = CliRunner().invoke(app, ["bev", str(root), "--out", str(tmp_path / "o3")])
+    text = result.output.replace("\n", "")
+    assert result.exit_code == 2 and "00007_semantic.png" in text, text
+    assert not [p for p in (tmp_path / "o3").rglob("*") if p.is_file()]  # nothing half-written
 
 
 def test_miou_ignores_void_and_scores_truth_classes_and_json_has_no_nan(tmp_path, tmp_path_factory):
