@@ -167,3 +167,14 @@ def test_a_second_build_of_a_folder_is_refused_while_the_first_runs(small_captur
         release(proc)
     report = build_dataset(small_capture, out)
     assert report.ok and report.skipped == SAMPLES and report.stale_removed == 1 and _tree(out) == before
+
+
+def test_dataset_files_without_the_bev_describe_no_bev_camera(small_capture, reference_build, tmp_path):
+    """A folder rebuilt with ``bev=False`` keeps no ``calibration_data/BEV.json`` of its former build."""
+    from jaxfish.dataset import write_dataset_files
+
+    out = _copy(reference_build[0], tmp_path / "dataset")
+    assert (out / "calibration_data" / "BEV.json").is_file()
+    write_dataset_files(CaptureReader(small_capture), out, BuildOptions(bev=False))
+    assert not (out / "calibration_data" / "BEV.json").exists()
+    assert json.loads((out / "dataset.json").read_text())["conventions"]["bev"] is None
