@@ -4,7 +4,7 @@ contact sheet per sample to ``OUT/contact_sheets/{sample}.png``.
 
 It writes only into folders it made: ``OUT/capture`` must be new, empty or a capture of the
 embedded scene (another demo's, rendered anew in place), ``OUT/dataset`` new, empty or a jaxfish
-dataset, and neither may be a symbolic link; it deletes no folder."""
+dataset, and none of its folders may be a symbolic link; it deletes no folder."""
 
 from __future__ import annotations
 
@@ -108,7 +108,7 @@ def _check_demo_folders(capture: Path, dataset: Path) -> None:
     from ..dataset import check_output_folder
     from ..io import CaptureError, check_capture_folder
 
-    for path in (capture, dataset):
+    for path in (capture, dataset, capture.parent / "contact_sheets"):
         if path.is_symlink():
             raise fail(f"{path}: a symbolic link; the demo writes only into folders it makes (use another OUT)")
     check_capture_folder(capture)

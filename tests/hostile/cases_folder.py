@@ -87,6 +87,8 @@ CASES = [
          kept=("{tmp}/capture/capture.json",), absent=("{tmp}/demo/dataset",)),
     Case("folder-demo-symlinked-dataset", DEMO, setup=_symlinked("dataset"), says=("{tmp}/demo/dataset", "symbolic link"),
          absent=("{tmp}/demo/capture", "{tmp}/capture/.done")),
+    Case("folder-demo-symlinked-contact-sheets", DEMO, setup=_symlinked("contact_sheets"),
+         says=("{tmp}/demo/contact_sheets", "symbolic link"), absent=("{tmp}/demo/capture", "{tmp}/demo/dataset")),
     Case("folder-demo-foreign-capture-folder", DEMO, setup=_user_file("demo/capture/rec.mcap"),
          says=("not a jaxfish capture", "rec.mcap"), kept=("{tmp}/demo/capture/rec.mcap",),
          absent=("{tmp}/demo/capture/capture.json", "{tmp}/demo/dataset")),
