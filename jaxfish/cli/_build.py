@@ -40,7 +40,7 @@ def _span(frames: list[int]) -> str:
 
 def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
               workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
-              motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1):
+              motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1, rebuild: bool = False):
     """Run `jaxfish.dataset.build_dataset` with a rich progress bar (samples/s); returns the report."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -67,7 +67,7 @@ def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, sch
             bar.update(task, advance=1, description=f"sample {sample}" + (" [red]failed[/]" if error else ""), rate=rate)
 
         report = build_dataset(capture_dir, out_dir, frames=frames, options=options, scheduler=scheduler,
-                               workers=workers, processes=processes, progress=tick)
+                               workers=workers, processes=processes, progress=tick, rebuild=rebuild)
     say(report.summary())
     return report
 
@@ -88,10 +88,13 @@ def build(
                                   help="zlib level of every PNG: 1 fastest, 6-9 ~30 % smaller PNGs, 2-4x slower."),
     batch_frames: int = typer.Option(1, "--batch-frames", min=1,
                                      help="Consecutive samples per batched ground-truth call (one vmapped program on a GPU)."),
+    rebuild: bool = typer.Option(False, "--rebuild",
+                                 help="Rebuild the samples OUT_DIR holds from another capture or with other options."),
 ) -> None:
     """Build a SynWoodScape-style dataset from a capture: every camera's images, depth, semantics,
     instances, motion, flow, events and boxes, plus dataset.json. Resumable (complete samples are
-    skipped); exit status 1 when any sample failed (each is listed with its reason)."""
+    skipped); a folder whose samples another capture or other options made is refused unless
+    --rebuild; exit status 1 when any sample failed (each is listed with its reason)."""
     if not capture_dir.is_dir():
         raise fail(f"{capture_dir}: capture directory not found")
     if workers is not None and workers < 1:
@@ -100,6 +103,7 @@ def build(
         raise fail(f"--write-threads must be >= 0, got {write_threads}")
     report = run_build(capture_dir, out_dir, frames=parse_frames(frames), scheduler=scheduler, workers=workers,
                        processes=processes, backward_flow=backward_flow, bev=bev, write_threads=write_threads,
-                       motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames)
+                       motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames,
+                       rebuild=rebuild)
     if not report.ok:
         raise typer.Exit(1)

@@ -1,6 +1,10 @@
 """``jaxfish demo OUT``: the README's one-command demo. Renders the embedded street scene with
 jaxfish's default rig to ``OUT/capture``, builds the dataset in ``OUT/dataset`` and writes one
-contact sheet per sample to ``OUT/contact_sheets/{sample}.png``."""
+contact sheet per sample to ``OUT/contact_sheets/{sample}.png``.
+
+It writes only into folders it made: ``OUT/capture`` must be new, empty or a capture of the
+embedded scene (another demo's, rendered anew in place), ``OUT/dataset`` new, empty or a jaxfish
+dataset, and none of its folders may be a symbolic link; it deletes no folder."""
 
 from __future__ import annotations
 
@@ -69,19 +73,20 @@ def demo(
     start = time.perf_counter()
     rig = demo_rig(scale)
     config = demo_config(scale)
-    capture = out / "capture"
-    if not _reusable(capture, frames, seed, config.face_size):
-        import shutil
-
-        shutil.rmtree(capture, ignore_errors=True)  # a different demo was here: start afresh
-        shutil.rmtree(out / "dataset", ignore_errors=True)
+    capture, dataset = out / "capture", out / "dataset"
+    _check_demo_folders(capture, dataset)
+    rerendered = not _reusable(capture, frames, seed, config.face_size)
+    if rerendered:  # a different demo (or none) was here: render this one over it
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                       TimeElapsedColumn(), console=console) as bar:
             task = bar.add_task("render", total=frames * steps_per_frame(rig))
             synthesize_capture(capture, rig, frames=frames, seed=seed, config=config,
                                progress=lambda msg: bar.update(task, advance=1, description=f"render {msg}"))
-    report = run_build(capture, out / "dataset", frames=list(range(frames)), scheduler=None, workers=workers,
-                       processes=True, backward_flow=False, bev=True, write_threads=2)
+    # A capture rendered anew makes the samples of the one it replaced outdated: rebuild them.
+    report = run_build(capture, dataset, frames=list(range(frames)), scheduler=None, workers=workers,
+                       processes=True, backward_flow=False, bev=True, write_threads=2, rebuild=rerendered)
+    for sample in set(report.replaced) - set(report.built):  # the sheet of a sample that is gone
+        (out / "contact_sheets" / f"{sample}.png").unlink(missing_ok=True)
     sheets = []
     for sample in report.samples:
         if sample in report.failed:
@@ -92,6 +97,29 @@ def demo(
         f"done in {time.perf_counter() - start:.1f} s")
     if not report.ok:
         raise typer.Exit(1)
+
+
+def _check_demo_folders(capture: Path, dataset: Path) -> None:
+    """Refuse (before rendering anything) folders the demo must not write into: a symbolic link
+    (it would write into whatever it points to), a capture that is not the embedded scene's (a
+    CARLA recording) or a folder of other files, a dataset folder that is not a jaxfish dataset."""
+    import json
+
+    from ..dataset import check_output_folder
+    from ..io import CaptureError, check_capture_folder
+
+    for path in (capture, dataset, capture.parent / "contact_sheets"):
+        if path.is_symlink():
+            raise fail(f"{path}: a symbolic link; the demo writes only into folders it makes (use another OUT)")
+    check_capture_folder(capture)
+    check_output_folder(dataset)
+    try:
+        source = json.loads((capture / "capture.json").read_text()).get("source")
+    except (OSError, ValueError, AttributeError):
+        return
+    if source != "embedded":
+        raise CaptureError(f"{capture / 'capture.json'}: a capture of source {source!r}, not one the demo rendered; "
+                           f"the demo renders only over its own (use another OUT)")
 
 
 def _reusable(capture: Path, frames: int, seed: int, face_size: int) -> bool:

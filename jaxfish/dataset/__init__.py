@@ -8,7 +8,10 @@ from ._build import DatasetError as DatasetError
 from ._build import build_dataset as build_dataset
 from ._build import build_sample as build_sample
 from ._build import build_samples as build_samples
+from ._build import capture_fingerprint as capture_fingerprint
+from ._build import check_output_folder as check_output_folder
 from ._build import clear_worker_cache as clear_worker_cache
+from ._build import frame_fingerprint as frame_fingerprint
 from ._build import has_bev as has_bev
 from ._build import is_complete as is_complete
 from ._build import local_cluster as local_cluster

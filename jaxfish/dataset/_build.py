@@ -2,10 +2,12 @@
 
 Each sample is a pure function of (capture, frame, options): `build_sample` reads the capture's
 frame, computes every camera's ground truth and writes the sample's files atomically, then its
-completion marker ``.done/{sample}.json`` (the files and their SHA-256) last. `build_dataset`
-skips samples whose marker exists, removes the temporary files a killed run left behind, runs the
-remaining samples serially or on a dask.distributed cluster (the bytes are the same), reports each
-failing sample with its reason, and finally writes the dataset-level files (``dataset.json``,
+completion marker ``.done/{sample}.json`` (the capture's fingerprint, the options, the files and
+their SHA-256) last. `build_dataset` writes only into a new, empty or jaxfish dataset folder, which
+it locks; it removes the temporary files a killed run left behind, refuses a folder whose samples
+another capture or other options made (unless asked to rebuild them), skips complete samples, runs
+the remaining samples serially or on a dask.distributed cluster (the bytes are the same), reports
+each failing sample with its reason, and finally writes the dataset-level files (``dataset.json``,
 ``calibration_data``, ``seg_annotation_info.json``).
 """
 
@@ -33,6 +35,9 @@ from ._runtime import share_cores, tune_allocator
 
 DONE_DIR = ".done"
 """Folder of the per-sample completion markers."""
+
+
+_NO_VALUE = object()
 
 
 class DatasetError(JaxfishError):
@@ -79,7 +84,7 @@ class BuildOptions:
 
     def to_dict(self) -> dict[str, Any]:
         """The options that shape the output (``write_threads``, ``tune_allocator`` and, on CPU,
-        ``batch_frames`` do not)."""
+        ``batch_frames`` do not): recorded in ``dataset.json`` and in every completion marker."""
         return {"backward_flow": self.backward_flow, "bev": self.bev, "motion_threshold_m": self.motion_threshold_m,
                 "png_level": self.png_level}
 
@@ -87,8 +92,10 @@ class BuildOptions:
 @dataclasses.dataclass
 class BuildReport:
     """What a build did: the requested ``samples`` (ids), those ``built`` now, ``skipped``
-    (complete from an earlier run), ``failed`` ``{sample: reason}``, the wall time and the rate of
-    built samples per second. ``ok`` is True when nothing failed."""
+    (complete from an earlier run), ``failed`` ``{sample: reason}``, ``replaced`` (samples another
+    capture or other options had made, whose files ``rebuild=True`` removed first; those requested
+    are in ``built``), the number of temporary files of killed runs removed, the wall time and the
+    rate of built samples per second. ``ok`` is True when nothing failed."""
 
     out_dir: Path
     samples: list[str]
@@ -97,6 +104,7 @@ class BuildReport:
     failed: dict[str, str] = dataclasses.field(default_factory=dict)
     seconds: float = 0.0
     stale_removed: int = 0
+    replaced: list[str] = dataclasses.field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -113,6 +121,9 @@ class BuildReport:
         lines = [f"{len(self.built)} built, {len(self.skipped)} already complete, {len(self.failed)} failed "
                  f"of {len(self.samples)} sample(s) in {self.seconds:.1f} s ({self.samples_per_second:.2f} samples/s)"
                  f" -> {self.out_dir}"]
+        if self.replaced:
+            lines.append(f"  {len(self.replaced)} sample(s) made from another capture or with other options "
+                         f"were removed first (rebuild): {_span(self.replaced)}")
         lines += [f"  sample {s} failed: {r}" for s, r in sorted(self.failed.items())]
         return "\n".join(lines)
 
@@ -159,6 +170,112 @@ def clear_worker_cache() -> None:
     """Forget the per-calibration constants (LUTs, rays) this process has built."""
     with _CACHE_LOCK:
         _CACHE.clear()
+
+
+# ------------------------------------------------------------------------------------ fingerprint
+def capture_fingerprint(reader) -> dict[str, str]:
+    """SHA-256 of the capture-level inputs of every sample of a capture (`jaxfish.io.CaptureReader`):
+    ``capture.json`` (its content without the ``frames`` list, which grows as frames are written),
+    ``sensors.json`` and ``calibration/{camera}.json`` of every listed camera, keyed by those
+    names (an empty string for a missing file)."""
+    meta = {k: v for k, v in reader.meta.items() if k != "frames"}
+    parts = {"capture.json": hashlib.sha256(json.dumps(meta, sort_keys=True, separators=(",", ":")).encode()).hexdigest(),
+             "sensors.json": _file_key(reader.root / "sensors.json")}
+    for cam in sorted(reader.cameras):
+        parts[f"calibration/{cam}.json"] = _file_key(reader.root / "calibration" / f"{cam}.json")
+    return parts
+
+
+def frame_fingerprint(capture_dir: str | os.PathLike, frame: int) -> str:
+    """SHA-256 of a capture frame's folder (``frames/{frame:06d}``): the bytes of its JSON files
+    (ego, actors, IMU, GNSS: they differ between any two renders or recordings) and the name and
+    size of every other file (images, events, point clouds: stat only, so that resuming a large
+    build stays cheap). Hidden files (and jaxfish's temporaries) are ignored. An image replaced by
+    another of exactly the same size is not seen: rebuild such a sample (``rebuild=True``)."""
+    from ..io._capture import frame_dir
+
+    d = frame_dir(capture_dir, frame)
+    entries = []
+    for dirpath, dirs, files in os.walk(d):
+        dirs[:] = [x for x in dirs if not x.startswith(".")]
+        entries += [os.path.join(dirpath, n) for n in files if not n.startswith(".")]
+    h = hashlib.sha256()
+    for path in sorted(entries):
+        rel = os.path.relpath(path, d).replace(os.sep, "/")
+        if rel.endswith(".json"):
+            data = Path(path).read_bytes()
+            h.update(f"{rel}\0{len(data)}\0".encode())
+            h.update(data)
+        else:
+            h.update(f"{rel}\0{os.stat(path).st_size}\0".encode())
+    return h.hexdigest()
+
+
+def _frame_key(frame: int) -> str:
+    return f"frames/{int(frame):06d}"
+
+
+def _marker_differences(doc: Any, options: dict[str, Any], capture: dict[str, str], capture_dir: Path,
+                        frames: set[int]) -> list[str]:
+    """What differs between a completion marker and this build (empty when nothing does)."""
+    opts, source = (doc.get("options"), doc.get("source")) if isinstance(doc, dict) else (None, None)
+    if not isinstance(opts, dict) or not isinstance(source, dict):
+        return ["its marker records no capture fingerprint and options (made by an older jaxfish)"]
+    diffs = []
+    for key in sorted(set(options) | set(opts)):
+        there, here = opts.get(key, _NO_VALUE), options.get(key, _NO_VALUE)
+        if there != here:
+            shown = ["(none)" if v is _NO_VALUE else repr(v) for v in (there, here)]
+            diffs.append(f"option {key} is {shown[0]} there, {shown[1]} in this build")
+    for key in sorted(set(capture) | {k for k in source if not k.startswith("frames/")}):
+        if source.get(key) != capture.get(key):
+            diffs.append(f"the capture's {key} differs")
+    frame = doc.get("frame")
+    if isinstance(frame, int) and frame in frames and source.get(_frame_key(frame)) != frame_fingerprint(capture_dir, frame):
+        diffs.append(f"the capture's {_frame_key(frame)} differs")
+    return diffs
+
+
+def _outdated_samples(out: Path, reader, options: BuildOptions) -> dict[str, list[str]]:
+    """``{sample: differences}`` of every completion marker in ``out`` (of this `LAYOUT_VERSION`;
+    others are rebuilt anyway) that another capture or other options made."""
+    done = out / DONE_DIR
+    if not done.is_dir():
+        return {}
+    wanted, capture, frames = options.to_dict(), capture_fingerprint(reader), set(reader.frames)
+    outdated = {}
+    for marker in sorted(done.glob("*.json")):
+        try:
+            doc = json.loads(marker.read_text())
+        except (OSError, ValueError):  # unreadable: not complete, rebuilt when requested
+            continue
+        if not isinstance(doc, dict) or doc.get("layout_version") != LAYOUT_VERSION:
+            continue
+        diffs = _marker_differences(doc, wanted, capture, reader.root, frames)
+        if diffs:
+            outdated[marker.stem] = diffs
+    return outdated
+
+
+def _span(samples: Sequence[str]) -> str:
+    samples = sorted(samples)
+    return ", ".join(samples[:5]) + (f" and {len(samples) - 5} more" if len(samples) > 5 else "")
+
+
+def _outdated_error(out: Path, outdated: dict[str, list[str]]) -> DatasetError:
+    reasons: list[str] = []
+    frames: list[str] = []
+    for diffs in outdated.values():
+        for d in diffs:
+            if d.startswith("the capture's frames/"):
+                frames.append(d.removeprefix("the capture's "))
+            elif d not in reasons:
+                reasons.append(d)
+    if frames:
+        reasons.append("the capture's " + _span(frames) + (" differ" if len(frames) > 1 else " differs"))
+    return DatasetError(f"{out}: sample(s) {_span(list(outdated))} were made from another capture or with other "
+                        f"options ({'; '.join(reasons)}); rebuild them (jaxfish build --rebuild, "
+                        f"build_dataset(..., rebuild=True)) or build into another folder")
 
 
 # ------------------------------------------------------------------------------------- one sample
@@ -231,7 +348,10 @@ def build_sample(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fra
     """Build one sample (capture frame ``frame``) into ``out_dir`` and write its marker last.
 
     Pure in (capture, frame, options): the same inputs give the same bytes in any process.
-    Returns ``{"sample", "frame", "layout_version", "files": {relative path: sha256}}`` (the marker's content).
+    Returns ``{"sample", "frame", "layout_version", "options", "source", "files"}`` (the marker's
+    content): ``options`` as `BuildOptions.to_dict`, ``source`` the capture's fingerprint
+    (`capture_fingerprint` plus ``frames/{frame:06d}``: `frame_fingerprint`), ``files``
+    ``{relative path: sha256}``.
     Raises on a missing or corrupt capture file (`jaxfish.io.CaptureError` naming the file)."""
     return build_samples(capture_dir, out_dir, [frame], options)[0]
 
@@ -254,15 +374,18 @@ def build_samples(capture_dir: str | os.PathLike, out_dir: str | os.PathLike, fr
         if frame not in reader.frames:
             raise DatasetError(f"{reader.root / 'capture.json'}: frame {frame} is not listed in field 'frames'")
     cams = [c for c in FISHEYE_CAMERAS if c in reader.cameras] + [c for c in reader.cameras if c not in FISHEYE_CAMERAS]
+    capture = capture_fingerprint(reader)  # before reading the frames: what the samples are made of
+    sources = [{**capture, _frame_key(f): frame_fingerprint(reader.root, f)} for f in frames]
     rows = [[]] * len(frames)
     if cams:
         rows = capture_rig_ground_truth(reader, frames, cams, constants={c: _camera_constants(reader, c) for c in cams},
                                         backward_flow=options.backward_flow, motion_threshold_m=options.motion_threshold_m)
-    return [_write_sample(reader, out, frame, cams, results, options) for frame, results in zip(frames, rows, strict=True)]
+    return [_write_sample(reader, out, frame, cams, results, options, source)
+            for frame, results, source in zip(frames, rows, sources, strict=True)]
 
 
 def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[dict[str, Any]],
-                  options: BuildOptions) -> dict[str, Any]:
+                  options: BuildOptions, source: dict[str, str]) -> dict[str, Any]:
     """Write one sample's files (the fisheye ``results`` computed, the BEV computed here while the
     fisheye files are written by the pool), then its marker; returns the marker."""
     from ..io import (
@@ -320,7 +443,8 @@ def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[
         if failed:  # the writers have stopped: remove what this sample wrote (the error propagates)
             remove_sample_files(out, sid)
     files = {p.relative_to(out).as_posix(): digest for p, digest in written}
-    marker = {"sample": sid, "frame": frame, "layout_version": LAYOUT_VERSION, "files": dict(sorted(files.items()))}
+    marker = {"sample": sid, "frame": frame, "layout_version": LAYOUT_VERSION, "options": options.to_dict(),
+              "source": source, "files": dict(sorted(files.items()))}
     atomic_write_text(out / DONE_DIR / f"{sid}.json", json.dumps(marker, indent=1) + "\n")
     return marker
 
@@ -397,17 +521,40 @@ def is_complete(out_dir: str | os.PathLike, sample: str) -> bool:
 
 
 def remove_stale_temporaries(out_dir: str | os.PathLike) -> int:
-    """Delete the temporary files (``.{name}.*.part*``) an interrupted run left in ``out_dir``;
-    returns how many. Only call it when no other build writes to ``out_dir``."""
-    n = 0
-    root = Path(out_dir)
-    if not root.is_dir():
-        return 0
-    for p in root.rglob(".*.part*"):
-        if p.is_file():
-            p.unlink(missing_ok=True)
-            n += 1
-    return n
+    """Delete the temporary files jaxfish's atomic writes left in ``out_dir`` when a run was killed
+    (``.jaxfish-{run}-{name}.{random}.part{suffix}``; no other file, whatever its name); returns how
+    many. Only call it when no other build writes to ``out_dir`` (`build_dataset` holds the
+    folder's lock)."""
+    from ..io._folder import remove_temporaries
+
+    return remove_temporaries(out_dir)
+
+
+def _is_dataset_folder(out: Path) -> bool:
+    """Whether ``out`` is a folder a jaxfish build started (``.done/``) or wrote (``dataset.json``)."""
+    from ._manifest import DATASET_FORMAT
+
+    if (out / DONE_DIR).is_dir():
+        return True
+    try:
+        return json.loads((out / "dataset.json").read_text()).get("format") == DATASET_FORMAT
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def check_output_folder(out_dir: str | os.PathLike) -> Path:
+    """Refuse (`DatasetError`) an output folder that jaxfish must not write into: a path that is not
+    a folder, or a folder that holds files and is not a jaxfish dataset (`dataset.json` of format
+    ``jaxfish-synwoodscape`` or a ``.done/`` folder). Returns the path."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"{out}: not a folder (the dataset output must be a folder)")
+    if out.is_dir() and any(out.iterdir()) and not _is_dataset_folder(out):
+        names = sorted(p.name for p in out.iterdir())
+        raise DatasetError(f"{out}: not empty and not a jaxfish dataset (it holds {', '.join(names[:3])}"
+                           f"{' ...' if len(names) > 3 else ''}; no dataset.json, no {DONE_DIR}/): build into a new "
+                           f"or empty folder")
+    return out
 
 
 def build_dataset(
@@ -420,17 +567,24 @@ def build_dataset(
     workers: int | None = None,
     processes: bool = True,
     progress: Callable[[str, str | None], None] | None = None,
+    rebuild: bool = False,
 ) -> BuildReport:
     """Build the dataset of a capture (``docs/dataset.md``).
 
     ``frames``: the capture frames to build (default all, in order); each becomes sample
-    ``{frame:05d}``. Samples already complete (marker present) are skipped; temporary files of a
-    killed run are removed first. ``scheduler`` (a dask.distributed address) or ``workers`` (start
-    a ``LocalCluster`` of that many workers, process workers unless ``processes=False``) run the
-    samples in parallel; the output bytes are those of a serial run. ``progress(sample, error)``
-    is called after each sample (``error`` None on success). A failing sample (missing or corrupt
-    capture file) is recorded in the report with its reason and does not stop the others. Finally
-    writes ``dataset.json`` (listing the complete samples), ``calibration_data`` and
+    ``{frame:05d}``. ``out_dir`` must be new, empty or a jaxfish dataset (`check_output_folder`);
+    the build locks it (a second build of the same folder meanwhile raises `DatasetError`) and
+    first removes the temporary files of a killed run (only jaxfish's own). Every completion marker
+    in the folder must record this capture's fingerprint and these options (``BuildOptions.to_dict``):
+    otherwise the build raises `DatasetError` naming what differs, before writing anything, or with
+    ``rebuild=True`` removes those samples' files first (`BuildReport.replaced`) and builds the
+    requested ones again. Samples already complete are skipped. ``scheduler`` (a
+    dask.distributed address) or ``workers`` (start a ``LocalCluster`` of that many workers,
+    process workers unless ``processes=False``) run the samples in parallel; the output bytes are
+    those of a serial run. ``progress(sample, error)`` is called after each sample (``error`` None
+    on success). A failing sample (missing or corrupt capture file) is recorded in the report with
+    its reason and does not stop the others. Finally writes ``dataset.json`` (listing the complete
+    samples, the capture's fingerprint and the options), ``calibration_data`` and
     ``semantic_annotations/seg_annotation_info.json``."""
     from ..io import CaptureReader
 
@@ -448,13 +602,28 @@ def build_dataset(
         from ..io import bev_sensor
 
         bev_sensor(reader)  # its scale, size and mount
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_output_folder(out_dir)
+    (out / DONE_DIR).mkdir(parents=True, exist_ok=True)  # marks the folder as a jaxfish dataset from now on
+    from ..io._folder import folder_lock
+
+    with folder_lock(out, DatasetError, "build"):  # the driver's: dask workers write under it
+        return _build_locked(reader, out, frames, options, scheduler, workers, processes, progress, rebuild, start)
+
+
+def _build_locked(reader, out: Path, frames: Sequence[int] | None, options: BuildOptions, scheduler: str | None,
+                  workers: int | None, processes: bool, progress: Callable[[str, str | None], None] | None,
+                  rebuild: bool, start: float) -> BuildReport:
     available = reader.frames
     wanted = list(available) if frames is None else [int(f) for f in frames]
     missing = [f for f in wanted if f not in available]
     report = BuildReport(out_dir=out, samples=[sample_id(f) for f in wanted])
     report.stale_removed = remove_stale_temporaries(out)
+    outdated = _outdated_samples(out, reader, options)
+    if outdated and not rebuild:
+        raise _outdated_error(out, outdated)
+    for sid in sorted(outdated):
+        remove_sample_files(out, sid)
+        report.replaced.append(sid)
     tick = progress or (lambda _s, _e: None)
     todo = []
     for f in wanted:

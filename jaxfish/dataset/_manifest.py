@@ -12,7 +12,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ._build import DONE_DIR, BuildOptions, has_bev
+from ._build import DONE_DIR, BuildOptions, capture_fingerprint, has_bev
 from ._layout import BEV_CAMERA, DATASET_FILES, FISHEYE_CAMERAS, LAYOUT, LAYOUT_VERSION
 
 DATASET_FORMAT = "jaxfish-synwoodscape"
@@ -28,7 +28,8 @@ def dataset_manifest(reader, out_dir: str | os.PathLike, options: BuildOptions |
     """The content of ``dataset.json`` for a capture (`jaxfish.io.CaptureReader`) built into
     ``out_dir`` with ``options``: conventions (flow direction, depth definition, event time
     units, BEV scale and axes, coordinate frames, pixel convention), the class table and palette,
-    the corrected SynWoodScape extrinsics, the layout (`LAYOUT`), the capture's provenance, the
+    the corrected SynWoodScape extrinsics, the layout (`LAYOUT`), the capture's provenance and
+    fingerprint (``source``: `capture_fingerprint`; each sample's marker adds its frame's), the
     build options, the jaxfish version and the complete samples (those with a marker)."""
     import numpy as np
 
@@ -53,6 +54,7 @@ def dataset_manifest(reader, out_dir: str | os.PathLike, options: BuildOptions |
         "generator": {"name": "jaxfish", "version": __version__},
         "capture": {k: meta.get(k) for k in ("format", "version", "source", "seed", "dt_s", "carla_semantic_tags",
                                               "face_size", "faces", "cameras")},
+        "source": capture_fingerprint(reader),
         "options": options.to_dict(),
         "cameras": cameras,
         "fisheye_cameras": fisheye,
@@ -129,7 +131,7 @@ def _bev_block(reader) -> dict[str, Any]:
 def write_dataset_files(reader, out_dir: str | os.PathLike, options: BuildOptions | None = None) -> list[Path]:
     """Write the dataset-level files: ``dataset.json`` (`dataset_manifest`),
     ``calibration_data/{camera}.json`` (the capture's calibration files, byte for byte),
-    ``calibration_data/BEV.json`` (BEV scale and axes) and
+    ``calibration_data/BEV.json`` (BEV scale and axes; removed when the build has no BEV) and
     ``semantic_annotations/seg_annotation_info.json`` (classes and palette). Atomic, deterministic."""
     from ..io import atomic_write_bytes, atomic_write_text, synwoodscape_palette_dict
 
@@ -144,6 +146,8 @@ def write_dataset_files(reader, out_dir: str | os.PathLike, options: BuildOption
     if manifest["conventions"]["bev"] is not None:
         paths.append(atomic_write_text(out / "calibration_data" / f"{BEV_CAMERA}.json",
                                        json.dumps(manifest["conventions"]["bev"], indent=1) + "\n"))
+    else:  # a build without the BEV (rebuilt with bev=False) describes no BEV camera
+        (out / "calibration_data" / f"{BEV_CAMERA}.json").unlink(missing_ok=True)
     paths.append(atomic_write_text(out / "semantic_annotations" / "seg_annotation_info.json",
                                    json.dumps(synwoodscape_palette_dict(), indent=1) + "\n"))
     paths.append(atomic_write_text(out / "dataset.json", json.dumps(manifest, indent=1) + "\n"))

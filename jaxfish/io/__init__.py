@@ -21,6 +21,7 @@ from ._calibration_json import save_calibration as save_calibration
 from ._calibration_json import save_rig as save_rig
 from ._capture import CaptureError as CaptureError
 from ._capture import CaptureReader as CaptureReader
+from ._capture import check_capture_folder as check_capture_folder
 from ._capture import forget_decoded_images as forget_decoded_images
 from ._capture import synthesize_capture as synthesize_capture
 from ._capture import write_capture_header as write_capture_header

@@ -8,6 +8,8 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from ._folder import temporary_prefix
+
 
 def _process_umask() -> int:
     mask = os.umask(0)
@@ -25,13 +27,15 @@ shared dataset unreadable to other users."""
 def atomic_path(path: str | os.PathLike, *, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is renamed onto ``path``
     (``os.replace``, atomic on POSIX) with the permissions of a plain ``open`` (`FILE_MODE`), on
-    error it is removed. The temporary name keeps the destination's extension (or ``suffix``) so
-    writers that dispatch on it work."""
+    error it is removed. The temporary name is ``.jaxfish-{run}-{stem}.{random}.part{suffix}``
+    (`jaxfish.io._folder`: a killed run's temporaries are recognised and removed by the next run,
+    and no other file is); it keeps the destination's extension (or ``suffix``) so writers that
+    dispatch on it work."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = path.suffix if suffix is None else suffix
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{suffix}", dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(path), suffix=f".part{suffix}", dir=path.parent)
     except OSError as e:
         raise type(e)(e.errno, f"{path}: cannot write here ({e.strerror})") from None
     os.close(fd)

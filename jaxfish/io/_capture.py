@@ -54,6 +54,7 @@ from ._carla import (
     encode_semantic,
     rgb_to_bgra,
 )
+from ._folder import folder_lock, is_temporary, remove_temporaries
 from ._images import read_image, write_image
 from ._json import read_json
 
@@ -292,6 +293,10 @@ def synthesize_capture(
 ) -> Path:
     """Render ``frames`` frames of the embedded street scene with ``rig`` and write the capture.
 
+    ``root`` must be new, empty or a jaxfish capture (`check_capture_folder`); it is locked while
+    the capture is written (a second writer meanwhile raises `CaptureError`) and the temporary
+    files a killed run left in it are removed first (only jaxfish's own). An existing capture's
+    files are overwritten with the new ones; files jaxfish does not write there are kept.
     ``progress`` is called with a short description after every step (a camera, a view, ...).
     """
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
@@ -300,10 +305,45 @@ def synthesize_capture(
         raise CaptureError(f"synthesize_capture: frames must be a positive integer, got {frames!r}")
     config = config or CaptureConfig()
     mounts = sensor_mounts(rig, config)
+    root = check_capture_folder(root)
+    root.mkdir(parents=True, exist_ok=True)
+    with folder_lock(root, CaptureError, "capture writer"):
+        remove_temporaries(root)
+        _synthesize_locked(root, rig, int(frames), int(seed), config, mounts, progress)
+    return root
+
+
+def check_capture_folder(root: str | os.PathLike) -> Path:
+    """Refuse (`CaptureError`) a folder a capture must not be written into: a path that is not a
+    folder, or a folder that holds files and is not a jaxfish capture (a ``capture.json`` of format
+    ``jaxfish-capture``; a folder holding only what `write_capture_header` writes before it, or
+    jaxfish's temporary files, counts as one). Returns the path."""
+    root = Path(root)
+    if root.exists() and not root.is_dir():
+        raise CaptureError(f"{root}: not a folder (a capture is written into a folder)")
+    if not root.is_dir():
+        return root
+    names = sorted(p.name for p in root.iterdir())
+    if not names or all(n in ("calibration", "sensors.json") or is_temporary(n) for n in names):
+        return root
+    header = root / "capture.json"
+    try:
+        ours = json.loads(header.read_text()).get("format") == CAPTURE_FORMAT
+    except (OSError, ValueError, AttributeError):
+        ours = False
+    if not ours:
+        raise CaptureError(f"{root}: not empty and not a jaxfish capture (it holds {', '.join(names[:3])}"
+                           f"{' ...' if len(names) > 3 else ''}; no capture.json of format {CAPTURE_FORMAT!r}): "
+                           f"write the capture into a new or empty folder")
+    return root
+
+
+def _synthesize_locked(root: Path, rig: Mapping[str, Calibration], frames: int, seed: int, config: CaptureConfig,
+                       mounts: SensorMounts, progress: Callable[[str], None] | None) -> None:
     write_capture_header(root, rig, config, mounts, seed=seed)
     bev, front = bev_camera(config), front_camera(config)
     tick = progress or (lambda _msg: None)
-    for k in range(int(frames)):
+    for k in range(frames):
         frame = generate_street(seed, frame=k, rig=rig)
         cams = {}
         for name, calib in rig.items():
@@ -318,7 +358,6 @@ def synthesize_capture(
         write_frame(root, frame, cameras=cams, views=views, lidar=lidar, semantic_lidar=sem, radar=radar,
                     imu=simulate_imu(frame), gnss=simulate_gnss(frame))
         tick(f"frame {k}: lidar, radar, imu, gnss written")
-    return Path(root)
 
 
 def rig_names(directory: str | os.PathLike) -> tuple[str, ...]:

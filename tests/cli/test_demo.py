@@ -4,6 +4,7 @@ the same sizes as tests/dataset so the compiled functions are shared)."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 from typer.testing import CliRunner
@@ -11,6 +12,8 @@ from typer.testing import CliRunner
 from jaxfish.cli import app
 from jaxfish.dataset import CONTACT_COLUMNS, CONTACT_ROWS
 from jaxfish.io import read_image
+from tests.dataset.small_capture import small_capture_dir
+from tests.hostile.corpus import run_cli
 
 
 def test_demo_renders_builds_and_draws_contact_sheets(tmp_path):
@@ -32,6 +35,31 @@ def test_demo_renders_builds_and_draws_contact_sheets(tmp_path):
     again = CliRunner().invoke(app, args)  # resumes: nothing re-rendered or rebuilt
     assert again.exit_code == 0, again.output
     assert "0 built, 1 already complete" in again.output
+    # Another seed over the demo's own output: rendered and rebuilt in place, the user's files kept.
+    users = [out / "capture" / "rec.mcap", out / "dataset" / "notes" / ".thesis.part1.tex", out / "rec.mcap"]
+    for p in users:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(p.name)
+    other = CliRunner().invoke(app, args[:-1] + ["2"])
+    assert other.exit_code == 0, other.output
+    assert "1 built, 0 already complete" in other.output and "removed first (rebuild): 00000" in other.output
+    assert all(p.read_text() == p.name for p in users)
+    assert json.loads((out / "capture" / "capture.json").read_text())["seed"] == 2
+    assert json.loads((out / "dataset" / "dataset.json").read_text())["capture"]["seed"] == 2
+
+
+def test_demo_never_writes_through_a_symlinked_capture(tmp_path, capsys):
+    """``OUT/capture`` a link to a real capture: refused before anything is rendered, the capture
+    untouched (a demo of another seed would have rendered over it)."""
+    real = tmp_path / "real"
+    shutil.copytree(small_capture_dir(), real)
+    before = {p: p.read_bytes() for p in real.rglob("*") if p.is_file()}
+    (tmp_path / "demo").mkdir()
+    (tmp_path / "demo" / "capture").symlink_to(real, target_is_directory=True)
+    code, _, err = run_cli(["demo", str(tmp_path / "demo"), "--frames", "1", "--scale", "0.05", "--seed", "2"], capsys)
+    assert code == 2 and "symbolic link" in err, err
+    assert {p: p.read_bytes() for p in real.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == ["capture"]
 
 
 def test_demo_rejects_bad_options(tmp_path):

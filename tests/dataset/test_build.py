@@ -20,6 +20,7 @@ import OpenImageIO as oiio
 import pytest
 
 from jaxfish.dataset import LAYOUT, build_dataset, is_complete, sample_files
+from jaxfish.io._folder import is_temporary
 
 SAMPLES = ("00000", "00001")
 
@@ -140,7 +141,8 @@ def test_killed_build_resumes_to_the_same_bytes(small_capture, reference_build, 
         build_dataset(small_capture, out, options=None)
     monkeypatch.setattr(os, "replace", real_replace)
     assert not is_complete(out, "00000") and not (out / "dataset.json").exists()
-    stale = out / "rgb_images" / ".00000_FV.abcd1234.part.png"  # what a SIGKILL leaves behind
+    stale = out / "rgb_images" / ".jaxfish-0badc0de-00000_FV.abcd1234.part.png"  # what a SIGKILL leaves behind
+    assert is_temporary(stale.name)  # the name atomic_path gives (tests/io/test_folder.py)
     stale.parent.mkdir(parents=True, exist_ok=True)
     stale.write_bytes(b"half a png")
     report = build_dataset(small_capture, out)

@@ -48,6 +48,8 @@ class Case:
     raises: type[BaseException] | None | str = "JaxfishError"
     check: Callable[[Any], bool] | None = None
     stdout_says: tuple[str, ...] = ()
+    kept: tuple[str, ...] = ()
+    """Paths (placeholders allowed) that must still exist after the run: the user's files."""
 
 
 def edit_json(path: Path, edit: Callable[[Any], Any]) -> None:
@@ -138,3 +140,5 @@ def run_case(case: Case, tmp: Path, capsys) -> None:
     assert not half_written(tmp), half_written(tmp)
     for path in case.absent:
         assert not Path(path.format(**values)).exists(), path
+    for path in case.kept:
+        assert Path(path.format(**values)).exists(), path
