@@ -16,6 +16,10 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 console = Console(stderr=True)
+"""stderr: progress bars, warnings, errors and other diagnostics."""
+results = Console(stderr=False)
+"""stdout: what a command produces (written paths, summaries, reports), so ``jaxfish convert ... >
+report.txt`` keeps only the report."""
 
 
 def print_error(message: object) -> None:
@@ -25,9 +29,33 @@ def print_error(message: object) -> None:
 
 
 def say(text: object) -> None:
-    """A plain report line (paths, numbers) on stderr: like `print_error`, never hard-wrapped at 80
-    columns and never read as rich markup (a path may hold ``[...]``)."""
+    """A result line (written paths, summaries, numbers) on stdout: like `print_error`, never
+    hard-wrapped at 80 columns and never read as rich markup (a path may hold ``[...]``)."""
+    results.print(str(text), highlight=False, markup=False, soft_wrap=True)
+
+
+def note(text: object) -> None:
+    """A diagnostic line on stderr (not a result), with `say`'s no-wrap, no-markup guarantees."""
     console.print(str(text), highlight=False, markup=False, soft_wrap=True)
+
+
+def print_warning(message: object) -> None:
+    """``warning: message`` on one line of stderr (the command goes on)."""
+    console.print(f"[bold yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+
+
+def warn_undersampled(face_size: int, cameras: dict) -> None:
+    """``warning: ...`` on stderr when ``face_size``-px cube faces undersample one of ``cameras``
+    (``{name: camera}``; `jaxfish.reprojection.warn_undersampled_faces`, CONVENTIONS §7)."""
+    import warnings
+
+    from ..reprojection import UndersampledFacesWarning, warn_undersampled_faces
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UndersampledFacesWarning)
+        message = warn_undersampled_faces(face_size, cameras)
+    if message:
+        print_warning(message)
 
 
 def fail(message: str, code: int = 2) -> typer.Exit:

@@ -56,15 +56,23 @@ def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, sch
     total = len(frames) if frames is not None else len(reader.frames)
     options = BuildOptions(backward_flow=backward_flow, bev=bev, motion_threshold_m=motion_threshold_m,
                            png_level=png_level, write_threads=write_threads, batch_frames=batch_frames)
+    from ..dataset import is_complete, sample_id
+
+    complete_before = {sample_id(f) for f in (frames if frames is not None else reader.frames)
+                       if is_complete(out_dir, sample_id(f))}  # skipped: not counted in the rate
+    built = []
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), console=console) as bar:
         task = bar.add_task("build", total=total, rate="")
 
         def tick(sample: str, error: str | None) -> None:
-            done = bar.tasks[0].completed + 1
+            skipped = error is None and sample in complete_before
+            if error is None and not skipped:
+                built.append(sample)
             elapsed = bar.tasks[0].elapsed or 0.0
-            rate = f"{done / elapsed:.2f} samples/s" if elapsed > 0 else ""
-            bar.update(task, advance=1, description=f"sample {sample}" + (" [red]failed[/]" if error else ""), rate=rate)
+            rate = f"{len(built) / elapsed:.2f} samples/s" if elapsed > 0 and built else bar.tasks[0].fields["rate"]
+            state = " [red]failed[/]" if error else " skipped (already complete)" if skipped else ""
+            bar.update(task, advance=1, description=f"sample {sample}{state}", rate=rate)
 
         report = build_dataset(capture_dir, out_dir, frames=frames, options=options, scheduler=scheduler,
                                workers=workers, processes=processes, progress=tick, rebuild=rebuild)

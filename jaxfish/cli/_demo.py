@@ -18,12 +18,13 @@ from ._app import app, console, fail, say
 
 def demo_config(scale: float):
     """The capture settings of the demo at ``scale`` (1 = SynWoodScape's sizes: fisheye 1280 x 966,
-    BEV 1024 px at 0.04 m per pixel; 768-px cube faces, the embedded capture's default: smaller than
-    `jaxfish.reprojection.cube_face_size`'s 1792 px, so the fisheye centre is slightly undersampled). The
+    BEV 1024 px at 0.04 m per pixel; 1152-px cube faces: focal 576 px/rad, above the default rig's
+    largest radial density, ~555 px/rad, so `jaxfish.reprojection.warn_undersampled_faces` stays quiet;
+    `jaxfish.reprojection.cube_face_size`'s 1792 px would also match the tangential density). The
     BEV keeps its ground coverage (metres per pixel grow as its size shrinks)."""
     from ..scene import CaptureConfig
 
-    face = max(16, round(768 * scale))
+    face = max(16, round(1152 * scale))
     bev = max(16, round(1024 * scale))
     front = max(16, round(1632 * scale))
     return CaptureConfig(face_size=face, bev_size=bev, bev_metres_per_pixel=0.04 * 1024 / bev, front_width=front, front_height=max(12, round(front * 3 / 4)),

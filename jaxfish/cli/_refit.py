@@ -9,7 +9,7 @@ from typing import Any
 
 import typer
 
-from ._app import app, check_outputs, fail, say
+from ._app import app, check_outputs, fail, print_warning, say
 
 
 def _write_json(path: Path, data: Any) -> None:
@@ -78,24 +78,84 @@ def _initial_camera(model: str, width: int, height: int, focal: float | None):
     return camera_from_intrinsics(model, np.asarray(vec), width=width, height=height, dtype=np.float64)
 
 
+EXAMPLE_VIEWS = 5
+"""Board views in the `example_correspondences` file."""
+
+
+def example_correspondences():
+    """``(correspondences, calibration)``: the corners of a 20 x 20 checkerboard (6 cm squares) in
+    `EXAMPLE_VIEWS` views 0.35-0.6 m from the default rig's FV camera (1280 x 966, 190 degrees), some
+    beyond 70 degrees off-axis, projected with that camera and 0.2 px of Gaussian noise (seed 0);
+    corners off the image have weight 0. ``jaxfish refit --example OUT`` writes them."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from .. import default_rig
+    from ..refit import Correspondences, rotation_from_vector
+    from ..transforms import Pose
+
+    calib = default_rig(dtype=jnp.float64)["FV"]
+    cam = calib.camera
+    g = np.stack(np.meshgrid(np.arange(20), np.arange(20)), -1).reshape(-1, 2) * 0.06
+    board = np.c_[g - g.mean(axis=0), np.zeros(len(g))]
+    omegas = np.array([[0.1, -0.2, 0.05], [0.5, 0.3, -0.2], [-0.4, 0.6, 0.3], [0.2, -0.7, 0.1], [-0.6, -0.3, -0.4]])
+    ts = np.array([[0.0, 0.0, 0.6], [-0.5, 0.1, 0.45], [0.6, -0.3, 0.5], [0.2, 0.5, 0.35], [-0.3, -0.4, 0.55]])
+    poses = Pose(rotation_from_vector(jnp.asarray(omegas)), jnp.asarray(ts))
+    pts = np.tile(board, (EXAMPLE_VIEWS, 1))
+    view = np.repeat(np.arange(EXAMPLE_VIEWS), len(board))
+    pc = jnp.einsum("nij,nj->ni", poses.rotation_matrix[view], jnp.asarray(pts)) + poses.translation[view]
+    uv, valid = cam.project(pc)
+    valid = np.asarray(valid & cam.contains(uv))
+    pixels = np.where(valid[:, None], np.asarray(uv), 0.0) + np.random.default_rng(0).normal(size=(len(pts), 2)) * 0.2
+    return Correspondences(pts, pixels, view, valid.astype(np.float64), dtype=np.float64), calib
+
+
+def _write_example(path: Path | None) -> None:
+    """``--example OUT``: write `example_correspondences` and exit (eager: no other option needed)."""
+    if path is None:
+        return
+    check_outputs(example=path)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from ..io import save_correspondences
+
+    corr, _ = example_correspondences()
+    save_correspondences(corr, path, frame="board", view_names=[f"img_{i:03d}" for i in range(EXAMPLE_VIEWS)])
+    say(f"wrote {path}: {int(corr.weight.sum())} checkerboard corners in {EXAMPLE_VIEWS} views of a 1280x966 "
+        "fisheye (jaxfish's default FV camera, 0.2 px noise); fit it with: jaxfish refit "
+        f"{path} --model radial_poly --width 1280 --height 966 --out fitted.json")
+    raise typer.Exit(0)
+
+
 @app.command()
 def refit(
-    correspondences: Path = typer.Argument(..., help="Correspondences JSON (format: docs/refit.md)."),
+    correspondences: Path = typer.Argument(..., help="Correspondences JSON (format: docs/refit.md; "
+                                           "--example writes one)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output calibration JSON."),
-    calibration: Path | None = typer.Option(None, "--calibration", "-c", help="Initial calibration JSON (any model)."),
-    model: str | None = typer.Option(None, "--model", "-m", help="Lens model to fit (default: the initial calibration's; "
-                                     "a different one is converted first)."),
-    width: int | None = typer.Option(None, help="Image width (without --calibration)."),
-    height: int | None = typer.Option(None, help="Image height (without --calibration)."),
-    focal: float | None = typer.Option(None, help="Initial focal length, pixels per radian (without --calibration)."),
-    name: str = typer.Option("camera", help="Camera name written without --calibration."),
+    calibration: Path | None = typer.Option(None, "--calibration", "-c", help="Initial calibration JSON (any model): "
+                                            "the default of --model, the image size, the start values of every "
+                                            "parameter, the extrinsic, the name and the file flavor."),
+    model: str | None = typer.Option(None, "--model", "-m", help="Lens model to fit (default: the --calibration's; "
+                                     "a different one is converted first). Required without --calibration."),
+    width: int | None = typer.Option(None, help="Image width (without --calibration; required then)."),
+    height: int | None = typer.Option(None, help="Image height (without --calibration; required then)."),
+    focal: float | None = typer.Option(None, help="Initial focal length, pixels per radian (without --calibration; "
+                                       "default: width / pi, an equidistant lens spanning 180 degrees)."),
+    name: str = typer.Option("camera", help="Camera name written without --calibration (with it: its name)."),
     fix: list[str] = typer.Option([], "--fix", help="Parameter to hold fixed (repeatable), e.g. --fix k4."),
     loss: str = typer.Option("linear", help="Robust loss: linear, huber, cauchy, soft_l1."),
     loss_scale: float = typer.Option(1.0, help="Robust loss scale in pixels."),
     fit_pose: bool = typer.Option(True, "--fit-pose/--no-fit-pose", help="Also fit the pose(s)."),
     report: Path | None = typer.Option(None, "--report", "-r", help="Report JSON (residuals, covariance, poses)."),
+    example: Path | None = typer.Option(None, "--example", is_eager=True, callback=_write_example,
+                                        help="Write an example correspondences file to this path and exit."),
 ) -> None:
-    """Fit a lens model's intrinsics (and poses) to 2D-3D correspondences; write the calibration and a report."""
+    """Fit a lens model's intrinsics (and poses) to 2D-3D correspondences; write the calibration and a report.
+
+    With --calibration, the model, image size, start values, extrinsic, name and flavor come from
+    that file; without it, give --model, --width and --height (and optionally --focal, --name).
+    """
     check_outputs(out=out, report=report)
     model = _model_option(model)
     import jax
@@ -179,6 +239,7 @@ def refit(
     _write_outputs(Calibration(name, result.camera, mount, flavor), out, report, full)
     say(f"wrote {out}")
     if not bool(result.converged):
+        print_warning(f"the solver did not converge in {summary['num_steps']} steps; {out} holds its last iterate")
         raise typer.Exit(1)
 
 

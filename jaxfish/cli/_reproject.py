@@ -14,7 +14,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, check_outputs, fail, say
+from ._app import app, check_outputs, fail, say, warn_undersampled
 
 _KINDS = ("rgb", "label", "depth")
 _OUT_EXTS = (".png", ".exr", ".npy")
@@ -204,6 +204,7 @@ def cube2fisheye(
             size = size or (str(paths[name]), img.shape[0])
             images.append(img)
         x = _prepare(images, kind, [str(paths[n]) for n in names])
+        warn_undersampled(size[1], {calib.name: calib.camera})
         fns = _functions()
         rig = CubeRig(size[1], faces=names, dtype=jnp.float32)
         lut = fns["lut"](rig, calib.camera.astype(jnp.float32), supersample=supersample, dtype=jnp.float32)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, console, fail, say
+from ._app import app, console, fail, say, warn_undersampled
 
 
 @app.command()
@@ -15,7 +15,8 @@ def synth(
     out: Path = typer.Option(..., "--out", "-o", help="Capture directory to write (created)."),
     frames: int = typer.Option(1, "--frames", "-n", help="Number of frames (each with its t-1 instant)."),
     seed: int = typer.Option(0, "--seed", "-s", help="Scene seed (the same seed gives the same capture)."),
-    face_size: int = typer.Option(768, "--face-size", help="Cube face size in pixels (90-degree faces)."),
+    face_size: int = typer.Option(1152, "--face-size", help="Cube face size in pixels (90-degree faces); a size "
+                                  "that undersamples the rig's fisheyes is warned about."),
     rig_dir: Path | None = typer.Option(None, "--rig", help="Calibration directory (default: jaxfish's own rig)."),
     bev_size: int = typer.Option(1024, "--bev-size", help="BEV top-view image size in pixels."),
     front_width: int = typer.Option(1632, "--front-width", help="Front perspective camera width (4:3)."),
@@ -42,6 +43,7 @@ def synth(
         rig = load_rig(rig_dir, names=rig_names(rig_dir))
     else:
         rig = default_rig()
+    warn_undersampled(face_size, {name: calib.camera for name, calib in rig.items()})
     config = CaptureConfig(face_size=face_size, bev_size=bev_size, front_width=front_width,
                            front_height=max(1, round(front_width * 3 / 4)), dvs_substeps=dvs_substeps)
     start = time.perf_counter()

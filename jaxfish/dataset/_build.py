@@ -117,10 +117,15 @@ class BuildReport:
         return len(self.built) / self.seconds if self.seconds > 0 and self.built else 0.0
 
     def summary(self) -> str:
-        """One paragraph: counts, rate, and one line per failed sample with its reason."""
+        """One paragraph: counts, the rate of the samples built (or, when none was built, how many
+        were skipped as already complete), and one line per failed sample with its reason."""
+        skipped = f"{len(self.skipped)} skipped as already complete"
+        if self.built:
+            rate = f"{self.samples_per_second:.2f} samples/s" + (f"; {skipped}" if self.skipped else "")
+        else:
+            rate = f"none built; {skipped}" if self.skipped else "none built"
         lines = [f"{len(self.built)} built, {len(self.skipped)} already complete, {len(self.failed)} failed "
-                 f"of {len(self.samples)} sample(s) in {self.seconds:.1f} s ({self.samples_per_second:.2f} samples/s)"
-                 f" -> {self.out_dir}"]
+                 f"of {len(self.samples)} sample(s) in {self.seconds:.1f} s ({rate}) -> {self.out_dir}"]
         if self.replaced:
             lines.append(f"  {len(self.replaced)} sample(s) made from another capture or with other options "
                          f"were removed first (rebuild): {_span(self.replaced)}")

@@ -4,8 +4,11 @@ from ._cube import CUBE_FACE_ROTATIONS as CUBE_FACE_ROTATIONS
 from ._cube import FIVE_FACES as FIVE_FACES
 from ._cube import SIX_FACES as SIX_FACES
 from ._cube import CubeRig as CubeRig
+from ._cube import UndersampledFacesWarning as UndersampledFacesWarning
 from ._cube import cube_face_size as cube_face_size
 from ._cube import face_to_camera_rotation as face_to_camera_rotation
+from ._cube import max_radial_density as max_radial_density
+from ._cube import warn_undersampled_faces as warn_undersampled_faces
 from ._lut import Lut as Lut
 from ._lut import build_lut as build_lut
 from ._lut import centre_sample as centre_sample

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -167,3 +168,75 @@ def cube_face_size(camera: WoodScapeFisheye, *, multiple: int = 32, oversample: 
     density = np.maximum(drho, rho / np.sin(thetas)) * max(a, 1.0)
     s = 2.0 * oversample * float(np.max(density))
     return int(math.ceil(s / multiple) * multiple)
+
+
+class UndersampledFacesWarning(UserWarning):
+    """Cube faces too small for a target camera: their focal ``S/2`` is below the target's largest
+    radial density (`max_radial_density`), so the resampled image is blocky (CONVENTIONS §7)."""
+
+
+def max_radial_density(camera: AbstractCamera, *, num_theta: int = 1024, num_phi: int = 256) -> float:
+    """The camera's largest ``d rho / d theta`` in pixels per radian over its image.
+
+    Rays on a grid of incidence angles ``theta`` (from the optical axis, ``+z``) and azimuths are
+    projected; the derivative ``|d uv / d theta|`` is exact (forward-mode autodiff of `project`)
+    and taken where the ray lands inside the image, along each azimuth up to the first ray that is
+    invalid or whose pixel stops moving away from the optical axis's. Works for every camera model;
+    non-radial models (``fx != fy``, aspect ratios) are covered by the azimuth grid. 0 when no
+    sampled ray lands in the image. Host-side: call it with concrete cameras, not under `jax.jit`.
+    """
+    import jax
+
+    cam = camera
+    floats = [x for x in jax.tree_util.tree_leaves(cam) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating)]
+    dtype = floats[0].dtype if floats else jnp.float32
+    theta = jnp.linspace(1e-3, math.pi - 1e-3, num_theta, dtype=dtype)[:, None]
+    phi = jnp.linspace(0.0, 2 * math.pi, num_phi, endpoint=False, dtype=dtype)[None, :]
+
+    def project(t):
+        st = jnp.sin(t)
+        rays = jnp.stack(jnp.broadcast_arrays(st * jnp.cos(phi), st * jnp.sin(phi), jnp.cos(t)), axis=-1)
+        return cam.project(rays)
+
+    (uv, valid), (duv, _) = jax.jvp(project, (theta,), (jnp.ones_like(theta),))
+    density = jnp.linalg.norm(duv, axis=-1)
+    centre, _ = cam.project(jnp.asarray([0.0, 0.0, 1.0], dtype))
+    # Only the rays that are their pixels' rays: along each azimuth, up to the first ray that is
+    # invalid or no longer moves away from the image of the axis (a model whose projection folds
+    # back, e.g. a converted double sphere near 180 degrees, reuses those pixels for other rays).
+    outward = jnp.sum(duv * (uv - centre), axis=-1) > 0
+    ok = valid & outward & jnp.all(jnp.isfinite(uv), axis=-1) & jnp.isfinite(density)
+    ok = jnp.cumprod(ok, axis=0).astype(bool) & cam.contains(uv)
+    return float(jnp.max(jnp.where(ok, density, 0.0)))
+
+
+def warn_undersampled_faces(face_size: int, cameras: AbstractCamera | dict[str, AbstractCamera], *,
+                            stacklevel: int = 2) -> str | None:
+    """Warn (one `UndersampledFacesWarning`) when ``face_size``-pixel cube faces undersample a camera.
+
+    A 90-degree face of ``S`` pixels has focal ``S/2`` pixels per radian, its lowest angular
+    density; the target needs ``S/2 >= max_radial_density(camera)`` (CONVENTIONS §7). ``cameras``
+    is one camera or ``{name: camera}``; one warning names the worst camera and the smallest
+    sufficient face size. Returns the warning's message, or None when the faces suffice.
+    `cube_face_size` gives the larger size that also matches the tangential density of a
+    `WoodScapeFisheye`.
+    """
+    named = cameras if isinstance(cameras, dict) else {"": cameras}
+    worst_name, worst = None, 0.0
+    for name, cam in named.items():
+        density = max_radial_density(cam)
+        if density > worst:
+            worst_name, worst = name, density
+    focal = int(face_size) / 2.0
+    if worst_name is None or focal >= worst:
+        return None
+    cam = named[worst_name]
+    label = f"the {worst_name} camera" if worst_name else "the target camera"
+    minimum = int(math.ceil(2.0 * worst))
+    message = (f"cube faces of {int(face_size)} px undersample {label} ({cam.width}x{cam.height}): their focal "
+               f"length {focal:g} px/rad is below its largest radial density {worst:.1f} px/rad, so the result "
+               f"is blocky; use a cube_face_size of at least {minimum} px")
+    if isinstance(cam, WoodScapeFisheye):
+        message += f" (jaxfish.cube_face_size(camera) = {cube_face_size(cam)} also matches its tangential density)"
+    warnings.warn(message, UndersampledFacesWarning, stacklevel=stacklevel)
+    return message
