@@ -142,13 +142,17 @@ GATHER_FILL_RADIUS = 2
 """`fuse_cameras_dense` draws its raised height hypotheses from the splat's observed heights within
 this many cells of each cell (a (2R+1) x (2R+1) window)."""
 GATHER_RANGE_TOLERANCE = 0.03
-"""Relative part of `fuse_cameras_dense`'s depth-consistency tolerance (fraction of the range from
-the camera to the cell's point); the absolute part is the cell's half diagonal."""
+"""`fuse_cameras_dense`'s depth-consistency test along the line of sight: the pixel's range may
+differ from the cell point's by this fraction of that range (plus the cell's half diagonal)."""
+GATHER_HEIGHT_TOLERANCE_RAD = 0.005
+"""`fuse_cameras_dense`'s depth-consistency test on a horizontal plane: the height of the point a
+pixel sees may differ from the hypothesis height by this angle (radians, about one pixel of a
+coarse range map) times the range (plus the cell's half diagonal)."""
 
 _NO_HEIGHT = -1.0e30  # an absent height hypothesis
 
 
-def _gather_one(cam, rotation, translation, ray, labels, rng, points, hyp_ok, tol_abs, tol_rel):
+def _gather_one(cam, rotation, translation, ray, labels, rng, points, hyp_ok, tol_abs, tol_rel, tol_angle):
     """One camera's verdict on the hypothesis points ``(H, W, 3)`` (vehicle frame): consistent,
     class read, range from the camera to the point."""
     p = jnp.einsum("ji,...j->...i", rotation, points - translation)  # R^T (P - t): camera frame
@@ -164,13 +168,10 @@ def _gather_one(cam, rotation, translation, ray, labels, rng, points, hyp_ok, to
     r_pix = jnp.take(rng.reshape(-1), flat)
     d = jnp.take(ray.reshape(-1, 3), flat, axis=0)
     r_pt = jnp.sqrt(jnp.sum(p * p, axis=-1))
-    # where the pixel's own ray meets the horizontal plane of the hypothesis (vehicle z = const)
-    dz = jnp.sum(rotation[2] * d, axis=-1)
-    steep = jnp.abs(dz) > 1e-6
-    r_plane = jnp.where(steep, (points[..., 2] - translation[2]) / jnp.where(steep, dz, 1.0), -1.0)
-    tol = tol_abs + tol_rel * r_pt
-    along_ray = jnp.abs(r_pix - r_pt) <= tol
-    on_plane = steep & (r_plane > 0) & (jnp.abs(r_pix - r_plane) <= tol)
+    # height of the point the pixel sees (vehicle z): on the hypothesis' horizontal plane?
+    q_z = translation[2] + r_pix * jnp.sum(rotation[2] * d, axis=-1)
+    along_ray = jnp.abs(r_pix - r_pt) <= tol_abs + tol_rel * r_pt
+    on_plane = jnp.abs(q_z - points[..., 2]) <= tol_abs + tol_angle * r_pt
     return ok & (lab >= 0) & (along_ray | on_plane), lab, r_pt
 
 
@@ -188,6 +189,7 @@ def fuse_cameras_dense(
     occupancy_min_height_m: float = OCCUPANCY_MIN_HEIGHT_M,
     fill_radius: int = GATHER_FILL_RADIUS,
     range_tolerance: float = GATHER_RANGE_TOLERANCE,
+    height_tolerance_rad: float = GATHER_HEIGHT_TOLERANCE_RAD,
 ) -> BevFusion:
     """A dense top view fused from N cameras: every BEV cell asks the cameras what they see where
     it is (a gather, the inverse of `fuse_cameras`' splat), with a depth-consistency test.
@@ -199,13 +201,14 @@ def fuse_cameras_dense(
     3. ``P`` is projected into every camera (exact model, validity and image bounds); the nearest
        pixel's range ``r_pix`` (along its own ray ``d``), class and validity are read. The camera
        **sees P consistently** when the pixel has a usable observation (valid ray and pixel,
-       ``0 < r_pix < far_m``, class in ``[0, MAX_CLASSES)``) and either ``|r_pix - |P - c|| <= tol``
-       (the pixel's surface is at P along the line of sight: vertical faces) or
-       ``|r_pix - r_z| <= tol`` with ``r_z`` where ``d`` meets the horizontal plane of height z
-       (the pixel sees that plane near P: ground and tops at grazing angles, where the pixel
-       footprint exceeds the cell). ``tol = m sqrt(2) / 2 + range_tolerance * |P - c|`` (``m``
-       the cell size, ``c`` the camera centre). A pixel seeing something nearer (an occluder) or
-       farther (free space at P) fails both.
+       ``0 < r_pix < far_m``, class in ``[0, MAX_CLASSES)``) and either
+       ``|r_pix - |P - c|| <= m sqrt(2) / 2 + range_tolerance |P - c|`` (the pixel's surface is at
+       P along the line of sight: vertical faces) or the point the pixel sees,
+       ``Q = c + r_pix d`` (``d`` its ray), lies on the hypothesis' horizontal plane:
+       ``|Q_z - z| <= m sqrt(2) / 2 + height_tolerance_rad |P - c|`` (ground and tops seen at
+       grazing angles, where a pixel's range spans more than the cell). ``m`` is the cell size,
+       ``c`` the camera centre. A pixel seeing something nearer (an occluder: its point is
+       higher, or in front along the ray) or farther (free space at P) fails both.
     4. **Choice:** the highest consistent hypothesis wins (the top view sees the top surface);
        among the cameras consistent at that height, the nearest one (smallest ``|P - c|``, the
        best resolved view) gives the class; ties go to the lower camera index.
@@ -224,19 +227,21 @@ def fuse_cameras_dense(
     radius = int(fill_radius)
     if radius < 0:
         raise ValueError(f"fuse_cameras_dense: fill_radius must be >= 0 cells, got {fill_radius}")
-    tol_rel = float(range_tolerance)
+    tol_rel, tol_angle = float(range_tolerance), float(height_tolerance_rad)
     if not tol_rel >= 0:
         raise ValueError(f"fuse_cameras_dense: range_tolerance must be >= 0, got {range_tolerance}")
+    if not tol_angle >= 0:
+        raise ValueError(f"fuse_cameras_dense: height_tolerance_rad must be >= 0, got {height_tolerance_rad}")
     r = jnp.asarray(range_m, _F32)
     ok_valid = jnp.ones(r.shape, bool) if valid is None else jnp.asarray(valid, bool)
     ray, ok = rig_rays(cam) if rays is None else (jnp.asarray(rays[0], _F32), jnp.asarray(rays[1], bool))
     return _gather(splat, cam, poses, ray, ok, r, jnp.asarray(semantic).astype(jnp.int32), ok_valid, bev_camera,
-                   bev_camera_to_vehicle, float(far_m), float(occupancy_min_height_m), radius, tol_rel)
+                   bev_camera_to_vehicle, float(far_m), float(occupancy_min_height_m), radius, tol_rel, tol_angle)
 
 
-@functools.partial(jax.jit, static_argnums=(10, 11, 12, 13))
+@functools.partial(jax.jit, static_argnums=(10, 11, 12, 13, 14))
 def _gather(splat, cam, poses, ray, ok, r, sem, ok_valid, bev_camera, bev_camera_to_vehicle, far_m,
-            occupancy_min_height_m, radius, tol_rel):
+            occupancy_min_height_m, radius, tol_rel, tol_angle):
     ground = bev_ground_points(bev_camera, bev_camera_to_vehicle)  # (H, W, 3), z = 0
     labels = jnp.where(ok & ok_valid & (r > 0) & (r < far_m) & (sem >= 0) & (sem < MAX_CLASSES), sem, UNOBSERVED)
     size = (2 * radius + 1, 2 * radius + 1)
@@ -253,8 +258,8 @@ def _gather(splat, cam, poses, ray, ok, r, sem, ok_valid, bev_camera, bev_camera
         best_z, best_r, best_lab = best
         present = z > _NO_HEIGHT / 2
         pts = ground.at[..., 2].set(jnp.where(present, z, 0.0))
-        cons, lab, r_pt = jax.vmap(_gather_one, in_axes=(0, 0, 0, 0, 0, 0, None, None, None, None))(
-            cam, rot, trans, ray, labels, r, pts, present, tol_abs, tol_rel)
+        cons, lab, r_pt = jax.vmap(_gather_one, in_axes=(0, 0, 0, 0, 0, 0, None, None, None, None, None))(
+            cam, rot, trans, ray, labels, r, pts, present, tol_abs, tol_rel, tol_angle)
         r_c = jnp.where(cons, r_pt, jnp.inf)
         k = jnp.argmin(r_c, axis=0)  # nearest consistent camera; ties: the lower index
         r_k = jnp.min(r_c, axis=0)
