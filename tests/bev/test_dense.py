@@ -180,3 +180,22 @@ def test_bad_arguments_raise_clear_errors(rig):
     with pytest.raises(ValueError, match=r"range_m must be \(N=4"):
         bev.fuse_cameras_dense(rig.cameras, rig.poses, rig.range_m[:3], rig.semantic[:3], rig.bev_camera,
                                rig.bev_pose, rays=rig.rays)
+
+
+def test_dense_view_covers_far_more_of_the_small_capture(tmp_path_factory):
+    from jaxfish.io import CaptureReader, capture_bev_ground_truth, capture_camera_maps
+    from tests.bev.small_capture import shared_bev_capture
+
+    reader = CaptureReader(shared_bev_capture(tmp_path_factory))
+    maps = capture_camera_maps(reader, 0)
+    truth = capture_bev_ground_truth(reader, 0)
+    args = (maps["cameras"], maps["cameras_to_vehicle"], maps["range_m"], maps["semantic"], truth["camera"],
+            truth["camera_to_vehicle"])
+    splat = bev.fuse_cameras(*args, valid=maps["valid"])
+    dense = bev.fuse_cameras_dense(*args, valid=maps["valid"])
+    s_cov, d_cov = float(np.mean(np.asarray(splat.observed))), float(np.mean(np.asarray(dense.observed)))
+    assert d_cov > 2 * s_cov and d_cov > 0.5
+    t = np.asarray(truth["truth"].semantic)
+    scores = bev.bev_scores(np.asarray(dense.semantic), t, num_classes=25)
+    assert float(scores.coverage) == pytest.approx(d_cov)
+    assert float(scores.miou_all) <= float(scores.miou_observed)
