@@ -1,6 +1,7 @@
-"""``jaxfish bev SOURCE --out DIR``: the true top view, the camera-fused top view and the IPM
-baseline of a capture (frames) or of a built SynWoodScape-layout dataset (samples), with colour
-renderings and the mIoU of fused and IPM against the truth.
+"""``jaxfish bev SOURCE --out DIR``: the true top view, the camera-fused top view (the dense gather,
+`jaxfish.bev.fuse_cameras_dense`) and the IPM baseline of a capture (frames) or of a built
+SynWoodScape-layout dataset (samples), with colour renderings and, for fused and IPM against the
+truth, the mIoU on all cells and on the cells the method observed, with its coverage.
 
 Written per sample ``ID`` (a capture frame's id is ``f"{frame:05d}"``), every PNG carrying the BEV
 scale and axes as metadata (``jaxfish.io.read_bev_metadata``)::
@@ -10,11 +11,12 @@ scale and axes as metadata (``jaxfish.io.read_bev_metadata``)::
     DIR/{truth,fused}/ID_height.npy / .png   float32 metres above the ground / viridis 0-4 m
     DIR/{truth,fused}/ID_occupancy.png       255 occupied, 0 free (or unobserved)
     DIR/ipm/ID_semantic.png, ID_semantic_color.png
-    DIR/scores.json                          per-sample and pooled per-class IoU, mIoU (null: no score)
+    DIR/scores.json                          per-sample and pooled per-class IoU, mIoU (null: no score), coverage
 
 mIoU ignores class 0 (``unlabeled``, void) and averages, for both methods alike, over the classes
 present in the true top view (a class only a prediction has lowers the IoU of the true classes it
-covers, but is not averaged itself).
+covers, but is not averaged itself). "All cells": a cell the method did not observe is a miss;
+"observed": only the cells the method observed (its coverage), classes present in their truth.
 """
 
 from __future__ import annotations
