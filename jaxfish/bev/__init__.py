@@ -5,6 +5,7 @@ from ._cameras import rig_rays as rig_rays
 from ._cameras import stack_cameras as stack_cameras
 from ._cameras import stack_poses as stack_poses
 from ._fusion import GATHER_FILL_RADIUS as GATHER_FILL_RADIUS
+from ._fusion import GATHER_HEIGHT_TOLERANCE_M as GATHER_HEIGHT_TOLERANCE_M
 from ._fusion import GATHER_HEIGHT_TOLERANCE_RAD as GATHER_HEIGHT_TOLERANCE_RAD
 from ._fusion import GATHER_RANGE_TOLERANCE as GATHER_RANGE_TOLERANCE
 from ._fusion import HEIGHT_QUANTUM_M as HEIGHT_QUANTUM_M

@@ -144,10 +144,14 @@ this many cells of each cell (a (2R+1) x (2R+1) window)."""
 GATHER_RANGE_TOLERANCE = 0.03
 """`fuse_cameras_dense`'s depth-consistency test along the line of sight: the pixel's range may
 differ from the cell point's by this fraction of that range (plus the cell's half diagonal)."""
-GATHER_HEIGHT_TOLERANCE_RAD = 0.005
+GATHER_HEIGHT_TOLERANCE_M = 0.02
+"""Absolute part of `fuse_cameras_dense`'s test on a horizontal plane (metres)."""
+GATHER_HEIGHT_TOLERANCE_RAD = 0.002
 """`fuse_cameras_dense`'s depth-consistency test on a horizontal plane: the height of the point a
-pixel sees may differ from the hypothesis height by this angle (radians, about one pixel of a
-coarse range map) times the range (plus the cell's half diagonal)."""
+pixel sees may differ from the hypothesis height by this angle (radians) times the range, plus
+`GATHER_HEIGHT_TOLERANCE_M`. It bounds the angular error of the range map: about half a pixel of
+the coarsest image the ranges were resampled from (range maps rendered per fisheye pixel: float
+error only; resampled from 256-pixel cube faces: 3 mrad, see ``jaxfish bev``)."""
 
 _NO_HEIGHT = -1.0e30  # an absent height hypothesis
 
@@ -171,7 +175,7 @@ def _gather_one(cam, rotation, translation, ray, labels, rng, points, hyp_ok, to
     # height of the point the pixel sees (vehicle z): on the hypothesis' horizontal plane?
     q_z = translation[2] + r_pix * jnp.sum(rotation[2] * d, axis=-1)
     along_ray = jnp.abs(r_pix - r_pt) <= tol_abs + tol_rel * r_pt
-    on_plane = jnp.abs(q_z - points[..., 2]) <= tol_abs + tol_angle * r_pt
+    on_plane = jnp.abs(q_z - points[..., 2]) <= GATHER_HEIGHT_TOLERANCE_M + tol_angle * r_pt
     return ok & (lab >= 0) & (along_ray | on_plane), lab, r_pt
 
 
@@ -205,9 +209,9 @@ def fuse_cameras_dense(
        ``|r_pix - |P - c|| <= m sqrt(2) / 2 + range_tolerance |P - c|`` (the pixel's surface is at
        P along the line of sight: vertical faces) or the point the pixel sees,
        ``Q = c + r_pix d`` (``d`` its ray), lies on the hypothesis' horizontal plane:
-       ``|Q_z - z| <= m sqrt(2) / 2 + height_tolerance_rad |P - c|`` (ground and tops seen at
-       grazing angles, where a pixel's range spans more than the cell). ``m`` is the cell size,
-       ``c`` the camera centre. A pixel seeing something nearer (an occluder: its point is
+       ``|Q_z - z| <= GATHER_HEIGHT_TOLERANCE_M + height_tolerance_rad |P - c|`` (ground and
+       tops seen at grazing angles, where a pixel's range spans more than the cell; the angle
+       bounds the range map's own angular error). ``m`` is the cell size, ``c`` the camera centre. A pixel seeing something nearer (an occluder: its point is
        higher, or in front along the ray) or farther (free space at P) fails both.
     4. **Choice:** the highest consistent hypothesis wins (the top view sees the top surface);
        among the cameras consistent at that height, the nearest one (smallest ``|P - c|``, the

@@ -110,6 +110,34 @@ def _capture_items(source: Path, frames: str | None):
                 "occupancy": truth["occupancy"]})
 
 
+def _dataset_range_resolution(source: Path) -> float | None:
+    """The angle of one cube-face pixel of the capture a jaxfish dataset was built from
+    (``dataset.json`` -> ``capture.face_size``): the angular step of its resampled range maps;
+    None when not recorded (range maps rendered per fisheye pixel)."""
+    import math
+
+    from .._errors import JaxfishError
+    from ..io._json import read_json
+
+    path = source / "dataset.json"
+    if not path.is_file():
+        return None
+    meta = read_json(path, JaxfishError)
+    face = meta.get("capture", {}).get("face_size") if isinstance(meta, dict) and isinstance(meta.get("capture"), dict) else None
+    if isinstance(face, int) and not isinstance(face, bool) and face > 0:
+        return math.pi / 2 / face
+    return None
+
+
+def _height_tolerance_rad(maps) -> float:
+    """`fuse_cameras_dense`'s plane-test angle for these range maps: its default, or 0.6 of the
+    angular step of the images they were resampled from (half a step, and a margin) if larger."""
+    from .. import bev as jbev
+
+    res = maps.get("range_resolution_rad")
+    return max(jbev.GATHER_HEIGHT_TOLERANCE_RAD, 0.6 * res) if res else jbev.GATHER_HEIGHT_TOLERANCE_RAD
+
+
 def _dataset_items(source: Path, samples: str | None):
     """Yield (id, bev camera, pose, maps, truth dict or None) per built sample."""
     import numpy as np
@@ -135,6 +163,7 @@ def _dataset_items(source: Path, samples: str | None):
     if not ids:
         raise JaxfishError(f"{depth_dir}: no samples (*_FV.npy range maps)")
     cameras = [c.camera for c in calibs]
+    resolution = _dataset_range_resolution(source)
     for sid in ids:
         rng, sem = [], []
         for n, c in zip(names, calibs, strict=True):
@@ -151,7 +180,8 @@ def _dataset_items(source: Path, samples: str | None):
             sem.append(lab)
         rng_a = np.stack(rng)
         maps = {"names": names, "cameras": cameras, "cameras_to_vehicle": [c.camera_to_vehicle for c in calibs],
-                "range_m": rng_a, "semantic": np.stack(sem).astype(np.int32), "valid": rng_a > 0}
+                "range_m": rng_a, "semantic": np.stack(sem).astype(np.int32), "valid": rng_a > 0,
+                "range_resolution_rad": resolution}
         truth = None
         tpath = source / "semantic_annotations" / "gtLabels" / f"{sid}_BEV.png"
         if tpath.is_file():
@@ -288,7 +318,7 @@ def _run(items, out: Path, kind: str, written: list[Path]):
                 rays = jax.jit(jbev.rig_rays)(cams)
             # fuse_cameras_dense / ipm_semantics compile their kernels once per shape themselves
             f = jbev.fuse_cameras_dense(cams, poses, maps["range_m"], maps["semantic"], cam, pose, valid=maps["valid"],
-                                        rays=rays)
+                                        rays=rays, height_tolerance_rad=_height_tolerance_rad(maps))
             i = jbev.ipm_semantics(cams, poses, maps["semantic"], cam, pose, valid=maps["valid"])
             meta = bev_metadata(cam, pose, sample=sid)
             written += _write_view(out / "fused", sid, meta, f.semantic, f.height_m, f.occupancy)

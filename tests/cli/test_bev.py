@@ -153,3 +153,25 @@ def test_miou_ignores_void_and_scores_truth_classes_and_json_has_no_nan(tmp_path
     cap = shared_bev_capture(tmp_path_factory)
     result = CliRunner().invoke(app, ["bev", str(cap), "--out", str(tmp_path / "o2"), "--samples", "00000"])
     assert result.exit_code == 2 and "--samples is for built datasets" in result.output.replace("\n", "")
+
+
+def test_plane_tolerance_follows_the_cube_faces_the_ranges_were_resampled_from(tmp_path, tmp_path_factory):
+    import math
+
+    from jaxfish.cli import _bev as cli_bev
+    from jaxfish.io import CaptureReader, capture_camera_maps
+    from tests.bev.small_capture import FACE
+
+    maps = capture_camera_maps(CaptureReader(shared_bev_capture(tmp_path_factory)), 0)
+    assert maps["range_resolution_rad"] == pytest.approx(math.pi / 2 / FACE)
+    assert cli_bev._height_tolerance_rad(maps) == pytest.approx(0.6 * math.pi / 2 / FACE)
+    # ranges rendered per fisheye pixel (no cube faces recorded): the library default
+    assert cli_bev._height_tolerance_rad({}) == bev.GATHER_HEIGHT_TOLERANCE_RAD
+    assert cli_bev._height_tolerance_rad({"range_resolution_rad": 1e-5}) == bev.GATHER_HEIGHT_TOLERANCE_RAD
+    (tmp_path / "dataset.json").write_text(json.dumps({"capture": {"face_size": 256}}))
+    assert cli_bev._dataset_range_resolution(tmp_path) == pytest.approx(math.pi / 512)
+    (tmp_path / "dataset.json").write_text(json.dumps({"capture": {"face_size": "big"}}))
+    assert cli_bev._dataset_range_resolution(tmp_path) is None
+    (tmp_path / "dataset.json").write_text("{not json")
+    with pytest.raises(jf.JaxfishError, match="dataset.json"):
+        cli_bev._dataset_range_resolution(tmp_path)
