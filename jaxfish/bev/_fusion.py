@@ -144,14 +144,16 @@ this many cells of each cell (a (2R+1) x (2R+1) window)."""
 GATHER_RANGE_TOLERANCE = 0.03
 """`fuse_cameras_dense`'s depth-consistency test along the line of sight: the pixel's range may
 differ from the cell point's by this fraction of that range (plus the cell's half diagonal)."""
-GATHER_HEIGHT_TOLERANCE_M = 0.02
+GATHER_HEIGHT_TOLERANCE_M = 0.01
 """Absolute part of `fuse_cameras_dense`'s test on a horizontal plane (metres)."""
-GATHER_HEIGHT_TOLERANCE_RAD = 0.002
+GATHER_HEIGHT_TOLERANCE_RAD = 0.001
 """`fuse_cameras_dense`'s depth-consistency test on a horizontal plane: the height of the point a
 pixel sees may differ from the hypothesis height by this angle (radians) times the range, plus
 `GATHER_HEIGHT_TOLERANCE_M`. It bounds the angular error of the range map: about half a pixel of
 the coarsest image the ranges were resampled from (range maps rendered per fisheye pixel: float
-error only; resampled from 256-pixel cube faces: 3 mrad, see ``jaxfish bev``)."""
+error only, the default leaves slack for gentle slopes; resampled from 256-pixel cube faces:
+3 mrad, see ``jaxfish bev``). Every milliradian widens the band behind a face standing on the
+ground that takes the face's class by ``1 mrad * r^2 / H`` (``r`` range, ``H`` camera height)."""
 
 _NO_HEIGHT = -1.0e30  # an absent height hypothesis
 
