@@ -97,7 +97,9 @@ def fuse_cameras(
     which is what a camera looking down would see; equal heights go to the larger class id.
     ``cameras`` (one model and image size) and ``cameras_to_vehicle`` are sequences or already
     stacked (`stack_cameras`); ``rays`` are `rig_rays` precomputed (one Newton solve per pixel
-    saved); ``valid`` masks pixels out. Pure, jittable, float32."""
+    saved); ``valid`` masks pixels out. The result is sparse where the cameras' pixels are coarser
+    than the grid (distant cells); `fuse_cameras_dense` fills every cell a camera sees. Pure,
+    jittable, float32."""
     cam = stack_cameras(cameras)
     poses = stack_poses(cameras_to_vehicle)
     r = jnp.asarray(range_m, _F32)
