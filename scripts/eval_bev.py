@@ -1,15 +1,17 @@
 """Evaluation: mIoU of the IPM top view and of the camera-fused top view against the true top view,
-per class, on embedded-scene samples (the SynWoodScape paper's comparison: 61.2 IPM vs 76.5
-native top view).
+per class, on embedded-scene samples (the SynWoodScape paper's table compares 61.2 for IPM of a
+learned fisheye segmentation with 76.5 for a learned native top-view segmentation; see docs/bev.md
+for why these figures are not comparable).
 
 Per sample (scene seed ``s``, frame 0): the four fisheyes of jaxfish's default rig are rendered
 directly (the exact oracle, `jaxfish.scene.render_fisheye`) at ``--width`` x 3/4 pixels, and the
 true top view by the capture's BEV camera (`jaxfish.scene.simulate_view`) at ``--bev-size`` pixels
 and ``--mpp`` metres per pixel. Classes are SynWoodScape's (two-wheelers and the ego split off by
-their actors). IoU is pooled over all samples, over all BEV cells (a cell the fusion did not
-observe counts as a miss) and over the cells the fusion observed (both methods on the same cells).
-mIoU ignores class 0 (``unlabeled``, void) and averages over the classes present in the truth, the
-same classes for both methods.
+their actors). Three top views: ``fused`` (`jaxfish.bev.fuse_cameras_dense`, what ``jaxfish bev``
+writes), ``splat`` (`jaxfish.bev.fuse_cameras` alone, its first stage) and ``ipm``. Each is scored
+(`jaxfish.bev.bev_scores`, IoU pooled over all samples) on **all** cells (a cell the method did not
+observe is a miss) and on the cells **it observed**, with its coverage. mIoU ignores class 0
+(``unlabeled``, void) and averages over the classes present in the (all / observed) truth.
 
     uv run python scripts/eval_bev.py [--samples 4] [--width 320] [--bev-size 256] [--mpp 0.08]
 """
@@ -64,9 +66,10 @@ def main() -> None:
     cams = bev.stack_cameras([rig[n].camera for n in names])
     poses = bev.stack_poses([rig[n].camera_to_vehicle for n in names])
     rays = jax.jit(bev.rig_rays)(cams)
-    iou = jax.jit(lambda p, t: bev.semantic_iou(p, t, num_classes=len(gt.SYNWOODSCAPE_CLASSES)))
-    pooled = {"fused": [0, 0, 0], "ipm": [0, 0, 0], "fused_observed": [0, 0, 0], "ipm_observed": [0, 0, 0]}
     n_cls = len(gt.SYNWOODSCAPE_CLASSES)
+    score = jax.jit(lambda p, t: bev.bev_scores(p, t, num_classes=n_cls, void_class=VOID_CLASS))
+    methods = ("fused", "splat", "ipm")
+    pooled = {m: [np.zeros(n_cls, np.int64) for _ in range(6)] for m in methods}
     per_sample = []
     t0 = time.perf_counter()
     for seed in range(args.samples):
@@ -79,45 +82,50 @@ def main() -> None:
             sem.append(classes(o.semantic, o.actor_id, actor_class))
             val.append(np.asarray(o.valid) & np.asarray(o.hit))
         _, top, _ = simulate_view(frame, bev_cam, bev_pose, config)
-        truth = classes(top.semantic, top.actor_id, actor_class)
+        truth = classes(top.semantic, top.actor_id, actor_class).astype(np.int32)
         rng_a, sem_a, val_a = np.stack(rng), np.stack(sem).astype(np.int32), np.stack(val)
-        fused = bev.fuse_cameras(cams, poses, rng_a, sem_a, bev_cam, bev_pose, valid=val_a, rays=rays)
-        ipm = bev.ipm_semantics(cams, poses, sem_a, bev_cam, bev_pose, valid=val_a)
-        row = {"seed": seed, "observed": float(np.mean(np.asarray(fused.observed)))}
-        obs = np.asarray(fused.observed)
-        t_obs = np.where(obs, truth, -1).astype(np.int32)  # only the cells the fusion observed
-        for name, pred, t in (("fused", fused.semantic, truth), ("ipm", ipm.semantic, truth),
-                              ("fused_observed", fused.semantic, t_obs), ("ipm_observed", ipm.semantic, t_obs)):
-            s = iou(np.asarray(pred, np.int32), t.astype(np.int32))
-            t_flat = t.reshape(-1)
-            counts = np.bincount(t_flat[(t_flat >= 0) & (t_flat < n_cls)], minlength=n_cls)
-            pooled[name][0] = pooled[name][0] + np.asarray(s.intersection, np.int64)
-            pooled[name][1] = pooled[name][1] + np.asarray(s.union, np.int64)
-            pooled[name][2] = pooled[name][2] + counts
-            per_class = scored_iou(np.asarray(s.intersection), np.asarray(s.union), counts)
-            row[name] = float(np.mean(list(per_class.values()))) if per_class else float("nan")
+        preds = {
+            "fused": bev.fuse_cameras_dense(cams, poses, rng_a, sem_a, bev_cam, bev_pose, valid=val_a, rays=rays).semantic,
+            "splat": bev.fuse_cameras(cams, poses, rng_a, sem_a, bev_cam, bev_pose, valid=val_a, rays=rays).semantic,
+            "ipm": bev.ipm_semantics(cams, poses, sem_a, bev_cam, bev_pose, valid=val_a).semantic,
+        }
+        row = {"seed": seed}
+        for m in methods:
+            s = score(np.asarray(preds[m], np.int32), truth)
+            counts = (s.all_cells.intersection, s.all_cells.union, s.truth_count, s.observed_cells.intersection,
+                      s.observed_cells.union, s.observed_truth_count)
+            for acc, c in zip(pooled[m], counts, strict=True):
+                acc += np.asarray(c, np.int64)
+            row[m] = float(s.miou_all)
+            row[f"{m}_observed"] = float(s.miou_observed)
+            row[f"{m}_coverage"] = float(s.coverage)
         per_sample.append(row)
-        print(f"seed {seed}: fused mIoU {100 * row['fused']:.1f}  IPM mIoU {100 * row['ipm']:.1f}  "
-              f"(fusion observed {100 * row['observed']:.0f} % of the cells)  {time.perf_counter() - t0:.0f} s", flush=True)
-    table = {}
-    for name, (inter, union, counts) in pooled.items():
-        table[name] = scored_iou(inter, union, counts)
-    cls_names = sorted(set(table["fused"]) | set(table["ipm"]), key=gt.SYNWOODSCAPE_CLASSES.index)
+        print(f"seed {seed}: " + "  ".join(f"{m} {100 * row[m]:.1f} / {100 * row[m + '_observed']:.1f} "
+                                            f"({100 * row[m + '_coverage']:.0f} %)" for m in methods)
+              + f"  {time.perf_counter() - t0:.0f} s", flush=True)
+    table, miou, coverage = {}, {}, {}
+    for m in methods:
+        inter, union, tc, o_inter, o_union, o_tc = pooled[m]
+        table[m] = scored_iou(inter, union, tc)
+        table[f"{m}_observed"] = scored_iou(o_inter, o_union, o_tc)
+        coverage[m] = float(o_tc.sum() / max(tc.sum(), 1))
+    for name, per_class in table.items():
+        miou[name] = float(np.mean(list(per_class.values()))) if per_class else float("nan")
+    cols = ("ipm", "ipm_observed", "splat", "splat_observed", "fused", "fused_observed")
+    cls_names = sorted(set().union(*(table[c] for c in cols)), key=gt.SYNWOODSCAPE_CLASSES.index)
     print(f"\n{args.samples} samples, fisheyes {width}x{height}, BEV {args.bev_size}x{args.bev_size} @ {args.mpp} m/px")
-    cols = ("ipm", "fused", "ipm_observed", "fused_observed")
-    print("all cells: IPM, fused; cells observed by the fusion: IPM, fused (IoU %; classes present in the truth, "
-          "'unlabeled' ignored)")
+    print("IoU % per method on all cells (unobserved = miss) and on the cells it observed; classes present in the "
+          "truth, 'unlabeled' ignored")
     print(f"{'class':<14}" + "".join(f"{c:>16}" for c in cols))
     for c in cls_names:
-        print(f"{c:<14}" + "".join(f"{100 * table[n].get(c, 0.0):>16.1f}" for n in cols))
-    miou = {n: float(np.mean(list(table[n].values()))) if table[n] else float("nan") for n in table}
+        print(f"{c:<14}" + "".join(f"{100 * table[n][c]:>16.1f}" if c in table[n] else f"{'-':>16}" for n in cols))
     print(f"{'mIoU':<14}" + "".join(f"{100 * miou[n]:>16.1f}" for n in cols))
-    print("paper (SynWoodScape): IPM 61.2, native top view 76.5")
+    print(f"{'coverage':<14}" + "".join(f"{100 * coverage[n.removesuffix('_observed')]:>16.1f}" for n in cols))
+    print("paper (SynWoodScape, learned networks): IPM of fisheye segmentation 61.2, native top-view segmentation 76.5")
     if args.json:
         miou_json = {n: v if np.isfinite(v) else None for n, v in miou.items()}
         rows = [{k: v if not isinstance(v, float) or np.isfinite(v) else None for k, v in r.items()} for r in per_sample]
-        print(json.dumps({"per_class": table, "miou": miou_json, "per_sample": rows}, indent=1))
-
+        print(json.dumps({"per_class": table, "miou": miou_json, "coverage": coverage, "per_sample": rows}, indent=1))
 
 if __name__ == "__main__":
     main()

@@ -1,6 +1,7 @@
-"""``jaxfish bev SOURCE --out DIR``: the true top view, the camera-fused top view and the IPM
-baseline of a capture (frames) or of a built SynWoodScape-layout dataset (samples), with colour
-renderings and the mIoU of fused and IPM against the truth.
+"""``jaxfish bev SOURCE --out DIR``: the true top view, the camera-fused top view (the dense gather,
+`jaxfish.bev.fuse_cameras_dense`) and the IPM baseline of a capture (frames) or of a built
+SynWoodScape-layout dataset (samples), with colour renderings and, for fused and IPM against the
+truth, the mIoU on all cells and on the cells the method observed, with its coverage.
 
 Written per sample ``ID`` (a capture frame's id is ``f"{frame:05d}"``), every PNG carrying the BEV
 scale and axes as metadata (``jaxfish.io.read_bev_metadata``)::
@@ -10,11 +11,12 @@ scale and axes as metadata (``jaxfish.io.read_bev_metadata``)::
     DIR/{truth,fused}/ID_height.npy / .png   float32 metres above the ground / viridis 0-4 m
     DIR/{truth,fused}/ID_occupancy.png       255 occupied, 0 free (or unobserved)
     DIR/ipm/ID_semantic.png, ID_semantic_color.png
-    DIR/scores.json                          per-sample and pooled per-class IoU, mIoU (null: no score)
+    DIR/scores.json                          per-sample and pooled per-class IoU, mIoU (null: no score), coverage
 
 mIoU ignores class 0 (``unlabeled``, void) and averages, for both methods alike, over the classes
 present in the true top view (a class only a prediction has lowers the IoU of the true classes it
-covers, but is not averaged itself).
+covers, but is not averaged itself). "All cells": a cell the method did not observe is a miss;
+"observed": only the cells the method observed (its coverage), classes present in their truth.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, console, fail, say
+from ._app import app, console, fail, results, say
 
 FISHEYES = ("FV", "MVL", "MVR", "RV")
 NO_LABEL = 255
@@ -108,6 +110,34 @@ def _capture_items(source: Path, frames: str | None):
                 "occupancy": truth["occupancy"]})
 
 
+def _dataset_range_resolution(source: Path) -> float | None:
+    """The angle of one cube-face pixel of the capture a jaxfish dataset was built from
+    (``dataset.json`` -> ``capture.face_size``): the angular step of its resampled range maps;
+    None when not recorded (range maps rendered per fisheye pixel)."""
+    import math
+
+    from .._errors import JaxfishError
+    from ..io._json import read_json
+
+    path = source / "dataset.json"
+    if not path.is_file():
+        return None
+    meta = read_json(path, JaxfishError)
+    face = meta.get("capture", {}).get("face_size") if isinstance(meta, dict) and isinstance(meta.get("capture"), dict) else None
+    if isinstance(face, int) and not isinstance(face, bool) and face > 0:
+        return math.pi / 2 / face
+    return None
+
+
+def _height_tolerance_rad(maps) -> float:
+    """`fuse_cameras_dense`'s plane-test angle for these range maps: its default, or 0.6 of the
+    angular step of the images they were resampled from (half a step, and a margin) if larger."""
+    from .. import bev as jbev
+
+    res = maps.get("range_resolution_rad")
+    return max(jbev.GATHER_HEIGHT_TOLERANCE_RAD, 0.6 * res) if res else jbev.GATHER_HEIGHT_TOLERANCE_RAD
+
+
 def _dataset_items(source: Path, samples: str | None):
     """Yield (id, bev camera, pose, maps, truth dict or None) per built sample."""
     import numpy as np
@@ -133,6 +163,7 @@ def _dataset_items(source: Path, samples: str | None):
     if not ids:
         raise JaxfishError(f"{depth_dir}: no samples (*_FV.npy range maps)")
     cameras = [c.camera for c in calibs]
+    resolution = _dataset_range_resolution(source)
     for sid in ids:
         rng, sem = [], []
         for n, c in zip(names, calibs, strict=True):
@@ -149,7 +180,8 @@ def _dataset_items(source: Path, samples: str | None):
             sem.append(lab)
         rng_a = np.stack(rng)
         maps = {"names": names, "cameras": cameras, "cameras_to_vehicle": [c.camera_to_vehicle for c in calibs],
-                "range_m": rng_a, "semantic": np.stack(sem).astype(np.int32), "valid": rng_a > 0}
+                "range_m": rng_a, "semantic": np.stack(sem).astype(np.int32), "valid": rng_a > 0,
+                "range_resolution_rad": resolution}
         truth = None
         tpath = source / "semantic_annotations" / "gtLabels" / f"{sid}_BEV.png"
         if tpath.is_file():
@@ -204,8 +236,9 @@ def bev(
     _report(source, kind, out, per_sample, pooled)
 
 
-_IOU: list = []
+_SCORES: list = []
 VOID_CLASS = 0  # SynWoodScape "unlabeled": not scored
+METHODS = ("fused", "ipm")
 
 
 def _truth_counts(truth, num_classes: int):
@@ -235,32 +268,45 @@ def _json_number(x):
     return float(x) if math.isfinite(x) else None
 
 
-def _iou():
-    """mIoU over the SynWoodScape classes, compiled once per process (shared by every call)."""
+def _scores():
+    """`jaxfish.bev.bev_scores` over the SynWoodScape classes, compiled once per process."""
     import jax
 
     from .. import bev as jbev
     from ..groundtruth import SYNWOODSCAPE_CLASSES
 
-    if not _IOU:
-        _IOU.append(jax.jit(lambda p, t: jbev.semantic_iou(p, t, num_classes=len(SYNWOODSCAPE_CLASSES))))
-    return _IOU[0]
+    if not _SCORES:
+        _SCORES.append(jax.jit(lambda p, t: jbev.bev_scores(p, t, num_classes=len(SYNWOODSCAPE_CLASSES),
+                                                            void_class=VOID_CLASS)))
+    return _SCORES[0]
+
+
+def _counts(s):
+    """The per-class counts of a `BevScores` as int64 NumPy: (all: inter, union, truth), (observed: ...)."""
+    import numpy as np
+
+    def c(a):
+        return np.asarray(a, np.int64)
+
+    return ((c(s.all_cells.intersection), c(s.all_cells.union), c(s.truth_count)),
+            (c(s.observed_cells.intersection), c(s.observed_cells.union), c(s.observed_truth_count)))
 
 
 def _run(items, out: Path, kind: str, written: list[Path]):
-    """Fuse, project and (with a true top view) score every item; the files written are appended
-    to ``written`` as they are written (so a caller can remove them when a later item fails)."""
+    """Fuse (dense gather), project (IPM) and (with a true top view) score every item on all cells
+    and on each method's observed cells; the files written are appended to ``written`` as they are
+    written (so a caller can remove them when a later item fails). Returns the per-sample rows and,
+    per method, the per-class counts of every scored sample (`_counts`)."""
     import jax
     import numpy as np
 
     from .. import bev as jbev
-    from ..groundtruth import SYNWOODSCAPE_CLASSES
     from ..io import bev_metadata
 
-    iou = _iou()
+    score = _scores()
     rays = None
     per_sample = []
-    pooled = {"fused": [], "ipm": [], "truth_count": []}
+    pooled: dict = {m: [] for m in METHODS}
     with console.status(f"{kind}: top views ...") as status:
         for sid, cam, pose, maps, truth in items:
             status.update(f"{kind} sample {sid}: fusing {len(maps['names'])} cameras")
@@ -270,62 +316,86 @@ def _run(items, out: Path, kind: str, written: list[Path]):
                 rays = tuple(np.stack([np.asarray(maps["rays"][n][k]) for n in maps["names"]]) for k in (0, 1))
             if rays is None:
                 rays = jax.jit(jbev.rig_rays)(cams)
-            # fuse_cameras / ipm_semantics compile their kernels once per shape themselves
-            f = jbev.fuse_cameras(cams, poses, maps["range_m"], maps["semantic"], cam, pose, valid=maps["valid"], rays=rays)
+            # fuse_cameras_dense / ipm_semantics compile their kernels once per shape themselves
+            f = jbev.fuse_cameras_dense(cams, poses, maps["range_m"], maps["semantic"], cam, pose, valid=maps["valid"],
+                                        rays=rays, height_tolerance_rad=_height_tolerance_rad(maps))
             i = jbev.ipm_semantics(cams, poses, maps["semantic"], cam, pose, valid=maps["valid"])
             meta = bev_metadata(cam, pose, sample=sid)
             written += _write_view(out / "fused", sid, meta, f.semantic, f.height_m, f.occupancy)
             written += _write_view(out / "ipm", sid, meta, i.semantic)
-            row = {"sample": sid, "observed_fraction": float(np.mean(np.asarray(f.observed)))}
+            preds = {"fused": np.asarray(f.semantic, np.int32), "ipm": np.asarray(i.semantic, np.int32)}
+            row = {"sample": sid}
+            for m in METHODS:
+                row[f"coverage_{m}"] = float(np.mean(preds[m] >= 0))
             if truth is not None:
                 written += _write_view(out / "truth", sid, meta, truth["semantic"], truth["height_m"], truth["occupancy"])
                 t = np.asarray(truth["semantic"], np.int32)
-                counts = _truth_counts(t, len(SYNWOODSCAPE_CLASSES))
-                pooled["truth_count"].append(counts)
-                for name, pred in (("fused", f.semantic), ("ipm", i.semantic)):
-                    s = iou(np.asarray(pred, np.int32), t)
-                    row[f"miou_{name}"] = _class_iou(s.intersection, s.union, counts)[1]
-                    pooled[name].append((np.asarray(s.intersection), np.asarray(s.union)))
+                for m in METHODS:
+                    counts = _counts(score(preds[m], t))
+                    row[f"miou_{m}"] = _class_iou(*counts[0])[1]
+                    row[f"miou_{m}_observed"] = _class_iou(*counts[1])[1]
+                    pooled[m].append(counts)
             per_sample.append(row)
     return per_sample, pooled
 
 
+def _pct(x) -> str:
+    import math
+
+    return f"{100 * x:.1f}" if x is not None and math.isfinite(x) else "-"
+
+
 def _report(source: Path, kind: str, out: Path, per_sample: list, pooled: dict) -> None:
+    """Print the scores (tables, and one result line per method through `say`) and write
+    ``scores.json``. ``pooled``: per method the `_counts` of every scored sample."""
     import numpy as np
     from rich.table import Table
 
     from ..groundtruth import SYNWOODSCAPE_CLASSES
     from ..io import atomic_write_text
 
-    table = Table(title=f"BEV mIoU vs the true top view ({kind})")
-    for col in ("sample", "fused mIoU", "IPM mIoU", "cells observed by fusion"):
+    table = Table(title=f"BEV mIoU vs the true top view ({kind}): all cells / observed cells (%)")
+    for col in ("sample", "fused all", "fused obs.", "fused cover", "IPM all", "IPM obs.", "IPM cover"):
         table.add_column(col)
     for r in per_sample:
-        table.add_row(r["sample"], f"{100 * r.get('miou_fused', float('nan')):.1f}",
-                      f"{100 * r.get('miou_ipm', float('nan')):.1f}", f"{100 * r['observed_fraction']:.0f} %")
-    console.print(table)
+        table.add_row(r["sample"], *(_pct(r.get(k)) for m in METHODS
+                                     for k in (f"miou_{m}", f"miou_{m}_observed", f"coverage_{m}")))
+    results.print(table)
     rows = [{k: _json_number(v) if isinstance(v, float) else v for k, v in r.items()} for r in per_sample]
     scores = {"source": str(source), "kind": kind, "samples": rows,
-              "miou_rule": "mean IoU over the classes present in the true top view, class 0 (unlabeled) ignored"}
-    if pooled["fused"]:
-        cls_table = Table(title="per class, pooled over samples (IoU %)")
-        for col in ("class", "fused", "IPM"):
+              "miou_rule": "mean IoU over the classes present in the true top view, class 0 (unlabeled) ignored; "
+                           "'miou': all cells (a cell the method did not observe is a miss), 'miou_observed': only "
+                           "the cells the method observed (its own 'coverage')"}
+    if all(pooled[m] for m in METHODS):
+        per_class: dict = {}
+        means: dict = {}
+        coverage: dict = {}
+        for m in METHODS:
+            for part, name in ((0, m), (1, f"{m}_observed")):
+                inter, union, counts = (np.sum([c[part][k] for c in pooled[m]], axis=0) for k in range(3))
+                per_class[name], means[name] = _class_iou(inter, union, counts)
+            cells = np.sum([c[0][2].sum() for c in pooled[m]])
+            seen = np.sum([c[1][2].sum() for c in pooled[m]])
+            coverage[m] = float(seen / cells) if cells > 0 else float("nan")
+        cols = ("fused", "fused_observed", "ipm", "ipm_observed")
+        cls_table = Table(title="per class, pooled over samples (IoU %): all cells / observed cells")
+        for col in ("class", "fused all", "fused obs.", "IPM all", "IPM obs."):
             cls_table.add_column(col)
-        per_class = {}
-        means = {}
-        counts = np.sum(pooled["truth_count"], axis=0)
-        for name in ("fused", "ipm"):
-            inter = np.sum([a for a, _ in pooled[name]], axis=0)
-            union = np.sum([b for _, b in pooled[name]], axis=0)
-            per_class[name], means[name] = _class_iou(inter, union, counts)
         for k, cname in enumerate(SYNWOODSCAPE_CLASSES):
-            if np.isfinite(per_class["fused"][k]) or np.isfinite(per_class["ipm"][k]):
-                cls_table.add_row(cname, *(f"{100 * per_class[n][k]:.1f}" for n in ("fused", "ipm")))
-        cls_table.add_row("mean (mIoU)", f"{100 * means['fused']:.1f}", f"{100 * means['ipm']:.1f}")
-        console.print(cls_table)
+            if any(np.isfinite(per_class[n][k]) for n in cols):
+                cls_table.add_row(cname, *(_pct(per_class[n][k]) for n in cols))
+        cls_table.add_row("mean (mIoU)", *(_pct(means[n]) for n in cols))
+        results.print(cls_table)
+        for m, label in (("fused", "fused mIoU"), ("ipm", "IPM mIoU")):
+            say(f"{label}: {_pct(means[m])} % on all cells, {_pct(means[m + '_observed'])} % on the cells it observed "
+                f"(coverage {_pct(coverage[m])} %)")
         scores["per_class_iou"] = {n: {SYNWOODSCAPE_CLASSES[k]: float(v) for k, v in enumerate(per_class[n])
-                                       if np.isfinite(v)} for n in ("fused", "ipm")}
-        scores["miou"] = {n: _json_number(v) for n, v in means.items()}
+                                       if np.isfinite(v)} for n in METHODS}
+        scores["per_class_iou_observed"] = {n: {SYNWOODSCAPE_CLASSES[k]: float(v) for k, v in
+                                                enumerate(per_class[f"{n}_observed"]) if np.isfinite(v)} for n in METHODS}
+        scores["miou"] = {n: _json_number(means[n]) for n in METHODS}
+        scores["miou_observed"] = {n: _json_number(means[f"{n}_observed"]) for n in METHODS}
+        scores["coverage"] = {n: _json_number(coverage[n]) for n in METHODS}
     else:
         say("no true top view found: wrote the fused and IPM views only")
     atomic_write_text(out / "scores.json", json.dumps(scores, indent=1, allow_nan=False) + "\n")

@@ -271,7 +271,9 @@ def capture_camera_maps(reader, frame: int, *, luts: Mapping[str, Any] | None = 
     24), as in the full ground truth. ``luts`` / ``rays`` (per camera name: `Lut`, `pixel_rays`)
     are per-calibration constants, built here when absent. Returns ``{"names", "cameras",
     "cameras_to_vehicle": lists, "range_m", "semantic" (-1 where no ray), "valid": (N, H, W)
-    arrays, "luts", "rays": dicts to pass back for the next frame}``."""
+    arrays, "luts", "rays": dicts to pass back for the next frame, "range_resolution_rad": the
+    angle of one cube-face pixel, (pi / 2) / face size: the angular step of the resampled range
+    maps, for `jaxfish.bev.fuse_cameras_dense`'s tolerance}``."""
     import jax.numpy as jnp
 
     from .. import groundtruth as gt
@@ -302,12 +304,14 @@ def capture_camera_maps(reader, frame: int, *, luts: Mapping[str, Any] | None = 
     faces = tuple(reader.faces)
     kernel = _jit_camera_maps()
     cams, poses, rng, sem, val = [], [], [], [], []
+    face_px = 1
     for name in names:
         if name not in rig:
             raise CaptureError(f"{reader.root}/calibration: camera {name!r} missing")
         calib = rig[name].astype(jnp.float32)
         cam = calib.camera.astype(jnp.float32)
         stack = reader.faces_stack(frame, name, "curr")
+        face_px = int(stack.depth_m.shape[1])
         if name not in luts:
             size = int(reader.meta.get("face_size", 0)) or stack.depth_m.shape[1]
             luts[name] = build_lut(CubeRig(size, faces=faces, dtype=jnp.float32), cam)
@@ -324,8 +328,10 @@ def capture_camera_maps(reader, frame: int, *, luts: Mapping[str, Any] | None = 
     shapes = {a.shape for a in rng}
     if len(shapes) != 1:
         raise CaptureError(f"{reader.root}/calibration: the fisheye cameras differ in image size ({sorted(shapes)})")
+    face = int(reader.meta.get("face_size", 0)) or face_px
     return {"names": names, "cameras": cams, "cameras_to_vehicle": poses, "range_m": np.stack(rng),
-            "semantic": np.stack(sem).astype(np.int32), "valid": np.stack(val), "luts": luts, "rays": rays}
+            "semantic": np.stack(sem).astype(np.int32), "valid": np.stack(val), "luts": luts, "rays": rays,
+            "range_resolution_rad": math.pi / 2 / face}
 
 
 _KERNEL: list[Any] = []

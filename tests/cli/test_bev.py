@@ -27,6 +27,8 @@ def test_bev_on_a_capture(tmp_path, tmp_path_factory):
     result = CliRunner().invoke(app, ["bev", str(cap), "--out", str(out), "--frames", "0"])
     assert result.exit_code == 0, result.output
     assert "fused mIoU" in result.output and "IPM mIoU" in result.output and "road" in result.output
+    text = result.output.replace("\n", " ")
+    assert "on all cells" in text and "on the cells it observed" in text and "coverage" in text
     for view in ("truth", "fused"):
         for name in VIEW_FILES:
             assert (out / view / f"00000_{name}").is_file(), (view, name)
@@ -35,6 +37,11 @@ def test_bev_on_a_capture(tmp_path, tmp_path_factory):
     assert meta["metres_per_pixel"] == pytest.approx(BEV_MPP) and meta["width"] == BEV_SIZE
     scores = json.loads((out / "scores.json").read_text())
     assert set(scores["miou"]) == {"fused", "ipm"} and 0.0 < scores["miou"]["fused"] <= 1.0
+    # both scores and the coverage of both methods: unobserved cells are misses in "miou" only
+    for m in ("fused", "ipm"):
+        assert scores["miou"][m] <= scores["miou_observed"][m] <= 1.0 and 0.0 < scores["coverage"][m] <= 1.0
+        assert scores["samples"][0][f"coverage_{m}"] == pytest.approx(scores["coverage"][m])
+    assert "vehicle" in scores["per_class_iou_observed"]["fused"]
     assert scores["samples"][0]["sample"] == "00000" and "vehicle" in scores["per_class_iou"]["fused"]
     truth = read_label_png(out / "truth" / "00000_semantic.png")
     assert {7, 8, 10}.issubset(set(np.unique(truth).tolist()))
@@ -74,8 +81,8 @@ def test_bev_on_a_built_sample(dataset, tmp_path):
     names = ("FV", "MVL", "MVR", "RV")
     rng = np.stack([np.load(root / "depth_maps" / "raw_data" / f"00007_{n}.npy") for n in names])
     sem = np.stack([read_label_png(root / "semantic_annotations" / "gtLabels" / f"00007_{n}.png") for n in names])
-    direct = bev.fuse_cameras([rig[n].camera for n in names], [rig[n].camera_to_vehicle for n in names],
-                                       rng, sem, cam, pose, valid=rng > 0)
+    direct = bev.fuse_cameras_dense([rig[n].camera for n in names], [rig[n].camera_to_vehicle for n in names],
+                                    rng, sem, cam, pose, valid=rng > 0)
     written = read_label_png(out / "fused" / "00007_semantic.png")
     np.testing.assert_array_equal(np.where(written == 255, -1, written), np.asarray(direct.semantic))
     np.testing.assert_array_equal(np.load(out / "fused" / "00007_height.npy"), np.asarray(direct.height_m))
@@ -129,16 +136,42 @@ def test_miou_ignores_void_and_scores_truth_classes_and_json_has_no_nan(tmp_path
     zero = np.zeros(len(jf.groundtruth.SYNWOODSCAPE_CLASSES), np.int64)
     out = tmp_path / "o"
     out.mkdir()
-    cli_bev._report(tmp_path, "dataset", out, [{"sample": "x", "observed_fraction": 0.5, "miou_fused": float("nan"),
-                                                "miou_ipm": float("nan")}],
-                    {"fused": [(zero, zero)], "ipm": [(zero, zero)], "truth_count": [zero + (np.arange(len(zero)) == 0)]})
+    void_only = zero + (np.arange(len(zero)) == 0)
+    counts = ((zero, zero, void_only), (zero, zero, void_only))
+    cli_bev._report(tmp_path, "dataset", out, [{"sample": "x", "coverage_fused": 0.5, "coverage_ipm": 1.0,
+                                                "miou_fused": float("nan"), "miou_ipm": float("nan"),
+                                                "miou_fused_observed": float("nan"), "miou_ipm_observed": float("nan")}],
+                    {"fused": [counts], "ipm": [counts]})
 
     def no_constants(c):
         raise AssertionError(f"invalid JSON constant {c}")
 
     scores = json.loads((out / "scores.json").read_text(), parse_constant=no_constants)
     assert scores["samples"][0]["miou_fused"] is None and scores["miou"] == {"fused": None, "ipm": None}
+    assert scores["samples"][0]["miou_ipm_observed"] is None and scores["miou_observed"] == {"fused": None, "ipm": None}
     # --samples is for datasets: rejected for a capture (as --frames is for a dataset).
     cap = shared_bev_capture(tmp_path_factory)
     result = CliRunner().invoke(app, ["bev", str(cap), "--out", str(tmp_path / "o2"), "--samples", "00000"])
     assert result.exit_code == 2 and "--samples is for built datasets" in result.output.replace("\n", "")
+
+
+def test_plane_tolerance_follows_the_cube_faces_the_ranges_were_resampled_from(tmp_path, tmp_path_factory):
+    import math
+
+    from jaxfish.cli import _bev as cli_bev
+    from jaxfish.io import CaptureReader, capture_camera_maps
+    from tests.bev.small_capture import FACE
+
+    maps = capture_camera_maps(CaptureReader(shared_bev_capture(tmp_path_factory)), 0)
+    assert maps["range_resolution_rad"] == pytest.approx(math.pi / 2 / FACE)
+    assert cli_bev._height_tolerance_rad(maps) == pytest.approx(0.6 * math.pi / 2 / FACE)
+    # ranges rendered per fisheye pixel (no cube faces recorded): the library default
+    assert cli_bev._height_tolerance_rad({}) == bev.GATHER_HEIGHT_TOLERANCE_RAD
+    assert cli_bev._height_tolerance_rad({"range_resolution_rad": 1e-5}) == bev.GATHER_HEIGHT_TOLERANCE_RAD
+    (tmp_path / "dataset.json").write_text(json.dumps({"capture": {"face_size": 256}}))
+    assert cli_bev._dataset_range_resolution(tmp_path) == pytest.approx(math.pi / 512)
+    (tmp_path / "dataset.json").write_text(json.dumps({"capture": {"face_size": "big"}}))
+    assert cli_bev._dataset_range_resolution(tmp_path) is None
+    (tmp_path / "dataset.json").write_text("{not json")
+    with pytest.raises(jf.JaxfishError, match="dataset.json"):
+        cli_bev._dataset_range_resolution(tmp_path)
