@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Mapping
@@ -19,7 +18,7 @@ from ..calibration import (
 )
 from ..cameras import WoodScapeFisheye
 from ..transforms import CARLA_TO_ISO, Pose
-from ._json import read_json
+from ._json import read_json, write_json
 
 _WOODSCAPE_T = "translation"
 _SYNWOODSCAPE_T = "translation used in CARLA (CARLA reference)"
@@ -184,10 +183,8 @@ def calibration_to_dict(calib: Calibration, *, flavor: str | None = None) -> dic
 
 def save_calibration(calib: Calibration, path: str | os.PathLike, *, flavor: str | None = None) -> Path:
     """Write a calibration as WoodScape JSON, atomically (a temporary file renamed into place)."""
-    from ._atomic import atomic_write_text
-
     path = Path(path)
-    atomic_write_text(path, json.dumps(calibration_to_dict(calib, flavor=flavor), indent=2) + "\n")
+    write_json(path, calibration_to_dict(calib, flavor=flavor), indent=2, error=CalibrationError)
     return path
 
 

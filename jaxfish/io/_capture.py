@@ -41,7 +41,7 @@ from ..scene import (
     simulate_radar,
     simulate_view,
 )
-from ._atomic import atomic_path, atomic_write_text
+from ._atomic import atomic_path
 from ._calibration_json import load_rig, save_rig
 from ._carla import (
     DVS_EVENT_DTYPE,
@@ -55,7 +55,7 @@ from ._carla import (
     rgb_to_bgra,
 )
 from ._images import read_image, write_image
-from ._json import read_json
+from ._json import read_json, write_json
 
 CAPTURE_FORMAT = "jaxfish-capture"
 """Format name and version stored in ``capture.json``."""
@@ -74,7 +74,7 @@ def frame_dir(root: str | os.PathLike, frame: int) -> Path:
 
 
 def _json(path: Path, obj: Any) -> None:
-    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
+    write_json(path, obj, indent=2, error=CaptureError)
 
 
 def _npy(path: Path, arr: np.ndarray) -> None:
