@@ -17,6 +17,7 @@ from ..calibration import (
     Calibration,
 )
 from ..cameras import WoodScapeFisheye
+from ..refit._parameters import intrinsic_range_problem
 from ..transforms import CARLA_TO_ISO, Pose
 from ._json import read_json, write_json
 
@@ -117,6 +118,10 @@ def calibration_from_dict(
             source, "intrinsic.k1",
             f"rho(theta) must increase at theta = 0 (k1 > 0 pixels/radian), got {intr['k1']!r}",
         )
+    for key in _INTRINSIC_NUMBERS:
+        problem = intrinsic_range_problem("radial_poly", key, vals[key])
+        if problem is not None:
+            raise _fail(source, f"intrinsic.{key}", problem)
     cam = WoodScapeFisheye(
         np.array([vals["k1"], vals["k2"], vals["k3"], vals["k4"]]),
         width=int(vals["width"]), height=int(vals["height"]),
