@@ -468,6 +468,10 @@ def fisheye_constants(reader, camera: str, model, *, frame: int | None = None, l
                 raise CaptureError(f"{reader.root / 'capture.json'}: field 'face_size' missing or not positive")
             size = reader.face(frame, camera, reader.faces[0], actor_ids=False).rgb.shape[0]
         lut = build_lut(CubeRig(size, faces=tuple(reader.faces), dtype=jnp.float32), model)
+        if not bool(jnp.any(lut.valid)):  # an empty dataset, not a camera
+            raise CaptureError(f"{reader.root / 'calibration' / f'{camera}.json'}: field 'intrinsic': no pixel of camera "
+                               f"{camera} has a ray inside its lens and the capture's cube faces (every pixel invalid in "
+                               "float32): its lens parameters make the camera useless")
     return (lut, compiled_pixel_rays(model) if rays is None else rays,
             gt.event_map_from_lut(lut) if event_map is None else event_map)
 

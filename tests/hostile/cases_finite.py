@@ -30,9 +30,9 @@ def _calib(key: str, value: float, rel: str = "FV.json"):
     return setup
 
 
-def _capture_calib(key: str, value: float):
+def _capture_calib(key: str, value: float, **more: float):
     def setup(tmp: Path) -> None:
-        edit_json(tmp / "capture" / "calibration" / "FV.json", lambda d: d["intrinsic"].__setitem__(key, value))
+        edit_json(tmp / "capture" / "calibration" / "FV.json", lambda d: d["intrinsic"].update({key: value, **more}))
     return setup
 
 
@@ -117,6 +117,8 @@ CASES = [
          setup=_duplicates, exit=1, says=("dup.json", "degenerate", "1 distinct", "not estimable"),
          absent=("{tmp}/fit.json", "{tmp}/r.json")),
     # more fields with NaN, 1e308, -inf
+    Case("finite-capture-calibration-blind", BUILD, setup=_capture_calib("k1", 1e-3, k2=-1e7), exit=1,
+         says=("calibration/FV.json", "every pixel invalid"), absent=("{tmp}/out/rgb_images",)),
     Case("finite-capture-dt-negative", BUILD, setup=_set("capture.json", "dt_s", value=-0.1),
          says=("capture.json", "'dt_s'"), absent=("{tmp}/out",)),
     Case("finite-capture-dt-inf", BUILD, setup=_set("capture.json", "dt_s", value=float("inf")),
