@@ -119,6 +119,8 @@ def refit(
     """Fit a lens model's intrinsics (and poses) to 2D-3D correspondences; write the calibration and a report."""
     check_outputs(out=out, report=report)
     model = _model_option(model)
+    if not (math.isfinite(loss_scale) and loss_scale > 0):
+        raise fail(f"--loss-scale must be a positive finite number of pixels, got {loss_scale}")
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -218,6 +220,8 @@ def convert(
     """Convert a calibration to another lens model, reporting the max and RMS reprojection difference."""
     check_outputs(out=out, report=report)
     target = _model_option(to)
+    if theta_max_deg is not None and not (math.isfinite(theta_max_deg) and theta_max_deg > 0):
+        raise fail(f"--theta-max-deg must be a positive finite number of degrees, got {theta_max_deg}")
     import jax
 
     jax.config.update("jax_enable_x64", True)

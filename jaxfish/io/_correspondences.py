@@ -56,6 +56,11 @@ def _read_json(path: Path, error: type[JaxfishError]) -> Any:
     return read_json(path, error)
 
 
+MAX_CORRESPONDENCE_VALUE = 1e7
+"""Largest magnitude of a correspondence's coordinate (metres, pixels) or weight: beyond any real
+calibration target, and small enough that squared residuals stay finite."""
+
+
 def _array(value: Any, cols: int | None, source: str, field: str) -> np.ndarray:
     try:
         a = np.asarray(value, dtype=np.float64)
@@ -69,6 +74,9 @@ def _array(value: Any, cols: int | None, source: str, field: str) -> np.ndarray:
         raise CorrespondenceError(f"{source}: field '{field}': expected a list of numbers, got shape {a.shape}")
     if not np.all(np.isfinite(a)):
         raise CorrespondenceError(f"{source}: field '{field}': values must be finite")
+    if a.size and np.abs(a).max() > MAX_CORRESPONDENCE_VALUE:
+        raise CorrespondenceError(f"{source}: field '{field}': values must be at most {MAX_CORRESPONDENCE_VALUE:g} in "
+                                  f"magnitude, got {np.abs(a).max():g}")
     return a
 
 

@@ -78,6 +78,16 @@ def _collinear(tmp: Path) -> None:
     (tmp / "axis.json").write_text(json.dumps({"frame": "camera", "views": views}))
 
 
+def _corr(points: list, pixels: list):
+    def setup(tmp: Path) -> None:
+        (tmp / "c.json").write_text(json.dumps({"frame": "camera", "views": [{"points": points, "pixels": pixels}]}))
+    return setup
+
+
+_PTS = [[0.1 * i, 0.2, 1.0] for i in range(20)]
+_PIX = [[700.0 + i, 500.0] for i in range(20)]
+
+
 def _write_json_nan(tmp: Path):
     from jaxfish.io._json import write_json
 
@@ -152,6 +162,26 @@ CASES = [
          setup=_kb_calib("k4", float("nan")), says=("kb.json", "intrinsic.k4"), absent=("{tmp}/ws.json",)),
     Case("finite-refit-on-axis", "refit {tmp}/axis.json -c {calib} -o {tmp}/fit.json -r {tmp}/r.json",
          setup=_collinear, exit=1, says=("axis.json", "degenerate"), absent=("{tmp}/fit.json", "{tmp}/r.json")),
+    Case("finite-convert-theta-max-nan", "convert {calib} --to kb --out {tmp}/kb.json --theta-max-deg nan",
+         says=("--theta-max-deg",), absent=("{tmp}/kb.json",)),
+    Case("finite-convert-theta-max-neg-inf", "convert {calib} --to kb --out {tmp}/kb.json --theta-max-deg -inf",
+         says=("--theta-max-deg",), absent=("{tmp}/kb.json",)),
+    Case("finite-refit-loss-scale-nan", "refit {tmp}/dup.json -c {calib} -o {tmp}/fit.json --loss-scale nan",
+         setup=_duplicates, says=("--loss-scale",), absent=("{tmp}/fit.json",)),
+    Case("finite-refit-loss-scale-inf", "refit {tmp}/dup.json -c {calib} -o {tmp}/fit.json --loss-scale inf",
+         setup=_duplicates, says=("--loss-scale",), absent=("{tmp}/fit.json",)),
+    Case("finite-refit-pixel-huge", "refit {tmp}/c.json -c {calib} -o {tmp}/fit.json",
+         setup=_corr(_PTS, _PIX[:19] + [[1e308, 1.0]]), says=("c.json", "views[0].pixels", "at most"),
+         absent=("{tmp}/fit.json",)),
+    Case("finite-refit-point-huge", "refit {tmp}/c.json -c {calib} -o {tmp}/fit.json",
+         setup=_corr(_PTS[:19] + [[1e300, 0.0, 1.0]], _PIX), says=("c.json", "views[0].points", "at most"),
+         absent=("{tmp}/fit.json",)),
+    Case("finite-sensors-bev-cx-nan", BUILD, setup=_set("sensors.json", "bev", "cx", value=float("nan")),
+         says=("sensors.json", "bev.cx"), absent=("{tmp}/out",)),
+    Case("finite-sensors-bev-scale-huge", BUILD, setup=_set("sensors.json", "bev", "metres_per_pixel", value=1e308),
+         says=("sensors.json", "bev.metres_per_pixel"), absent=("{tmp}/out",)),
+    Case("finite-sensors-bev-scale-tiny", BUILD, setup=_set("sensors.json", "bev", "metres_per_pixel", value=1e-300),
+         says=("sensors.json", "bev.metres_per_pixel"), absent=("{tmp}/out",)),
     # the writers
     Case("finite-write-json-nan", call=_write_json_nan, says=("out.json", "field 'a[1].b'", "nan"),
          absent=("{tmp}/out.json",)),
