@@ -12,12 +12,6 @@ import typer
 from ._app import app, check_outputs, fail, print_warning, say
 
 
-def _write_json(path: Path, data: Any) -> None:
-    from ..io import atomic_write_text
-
-    atomic_write_text(path, json.dumps(data, indent=2) + "\n")
-
-
 def _model_option(model: str | None) -> str | None:
     """``--model``/``--to`` as a canonical lens model name, or a clear error naming the option."""
     from ..refit import canonical_model_name
@@ -31,22 +25,36 @@ def _model_option(model: str | None) -> str | None:
 
 
 def _write_outputs(calibration, out: Path, report: Path | None, summary: dict[str, Any] | None) -> None:
-    """The calibration (after checking every parameter is finite) and the report: both or neither
-    (a report that cannot be written removes the calibration just written)."""
+    """The calibration and the report: both or neither. Both texts are made first: a calibration
+    with a non-finite parameter, or one jaxfish's own loader refuses (a zero focal length, ...), and
+    a report holding a non-finite number write nothing (exit status 1: the inputs were read, the
+    result is unusable); a report that cannot be written removes the calibration just written."""
     import numpy as np
 
-    from ..io import save_camera_calibration
+    from .._errors import JaxfishError
+    from ..io import atomic_write_text, camera_calibration_from_dict, camera_calibration_to_dict
+    from ..io._json import to_json_text
     from ..refit import intrinsics_vector
 
+    nothing = "" if report is None else f"; {report} not written either"
     values = np.asarray(intrinsics_vector(calibration.camera))
     if not np.all(np.isfinite(values)):
-        raise fail(f"--out {out}: not written, the fitted parameters are not finite ({values.tolist()})", code=1)
+        raise fail(f"--out {out}: not written, the fitted parameters are not finite ({values.tolist()}){nothing}", code=1)
+    try:
+        text = to_json_text(out, camera_calibration_to_dict(calibration), indent=2)
+        camera_calibration_from_dict(json.loads(text), source=str(out))  # what reading it back would say
+    except ValueError as e:
+        raise fail(f"{out}: not written, jaxfish could not read it back: {e}{nothing}", code=1) from None
+    try:
+        report_text = None if report is None else to_json_text(report, summary, indent=2)
+    except JaxfishError as e:
+        raise fail(f"{e}; {out} not written either", code=1) from None
     existed = out.exists()
-    save_camera_calibration(calibration, out)
-    if report is None:
+    atomic_write_text(out, text)
+    if report is None or report_text is None:
         return
     try:
-        _write_json(report, summary)
+        atomic_write_text(report, report_text)
     except OSError as e:
         if not existed:
             out.unlink(missing_ok=True)
@@ -128,6 +136,19 @@ def _write_example(path: Path | None) -> None:
     raise typer.Exit(0)
 
 
+def _degenerate(path: Path, corr, result) -> str:
+    """Why a refit has no covariance: how many distinct correspondences there are for how many
+    free parameters."""
+    import numpy as np
+
+    used = np.asarray(corr.weight) > 0
+    rows = np.c_[np.asarray(corr.view)[used], np.asarray(corr.points)[used], np.asarray(corr.pixels)[used]]
+    distinct = len(np.unique(rows, axis=0))
+    return (f"{path}: degenerate correspondences: {int(used.sum())} points ({distinct} distinct) do not determine "
+            f"the {len(result.parameter_names)} free parameters (covariance and standard deviations not estimable; "
+            "give more distinct points, or --fix parameters); nothing written")
+
+
 @app.command()
 def refit(
     correspondences: Path = typer.Argument(..., help="Correspondences JSON (format: docs/refit.md; "
@@ -158,6 +179,8 @@ def refit(
     """
     check_outputs(out=out, report=report)
     model = _model_option(model)
+    if not (math.isfinite(loss_scale) and loss_scale > 0):
+        raise fail(f"--loss-scale must be a positive finite number of pixels, got {loss_scale}")
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -220,6 +243,8 @@ def refit(
         "loss": loss, "loss_scale_px": loss_scale,
         "parameters": {k: {"value": v, "std": std.get(k), "fixed": k not in std} for k, v in values.items()},
     }
+    if not result.determined:
+        raise fail(_degenerate(correspondences, corr, result), code=1)
     say(
         f"refit {summary['model']}: rms {summary['rms_px']:.4f} px over {summary['num_correspondences']} points, "
         f"{summary['num_steps']} steps, converged={summary['converged']}")
@@ -256,6 +281,8 @@ def convert(
     """Convert a calibration to another lens model, reporting the max and RMS reprojection difference."""
     check_outputs(out=out, report=report)
     target = _model_option(to)
+    if theta_max_deg is not None and not (math.isfinite(theta_max_deg) and theta_max_deg > 0):
+        raise fail(f"--theta-max-deg must be a positive finite number of degrees, got {theta_max_deg}")
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -394,12 +394,12 @@ def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[
     """Write one sample's files (the fisheye ``results`` computed, the BEV computed here while the
     fisheye files are written by the pool), then its marker; returns the marker."""
     from ..io import (
-        atomic_write_text,
         capture_bev_ground_truth,
         write_bev_ground_truth,
         write_camera_ground_truth,
         write_sample_ground_truth,
     )
+    from ..io._json import write_json
 
     sid = sample_id(frame)
     thr = options.motion_threshold_m
@@ -450,7 +450,7 @@ def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[
     files = {p.relative_to(out).as_posix(): digest for p, digest in written}
     marker = {"sample": sid, "frame": frame, "layout_version": LAYOUT_VERSION, "options": options.to_dict(),
               "source": source, "files": dict(sorted(files.items()))}
-    atomic_write_text(out / DONE_DIR / f"{sid}.json", json.dumps(marker, indent=1) + "\n")
+    write_json(out / DONE_DIR / f"{sid}.json", marker, indent=1, error=DatasetError)
     return marker
 
 

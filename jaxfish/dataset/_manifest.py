@@ -7,12 +7,11 @@ Deterministic: no timestamps, hosts or paths; the same capture and options give 
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
 
-from ._build import DONE_DIR, BuildOptions, capture_fingerprint, has_bev
+from ._build import DONE_DIR, BuildOptions, DatasetError, capture_fingerprint, has_bev
 from ._layout import BEV_CAMERA, DATASET_FILES, FISHEYE_CAMERAS, LAYOUT, LAYOUT_VERSION
 
 DATASET_FORMAT = "jaxfish-synwoodscape"
@@ -134,21 +133,25 @@ def write_dataset_files(reader, out_dir: str | os.PathLike, options: BuildOption
     ``calibration_data/BEV.json`` (BEV scale and axes; removed when the build has no BEV) and
     ``semantic_annotations/seg_annotation_info.json`` (classes and palette). Atomic, deterministic."""
     from ..io import atomic_write_bytes, atomic_write_text, synwoodscape_palette_dict
+    from ..io._json import to_json_text
 
     options = options or BuildOptions()
     out = Path(out_dir)
     paths = []
     reader.rig()  # every calibration valid before one is copied (never a broken file over a good one)
     manifest = dataset_manifest(reader, out, options)
+    # Every JSON text first (strict: a non-finite number names the file and field), then the files.
+    docs: dict[str, Any] = {}
+    if manifest["conventions"]["bev"] is not None:
+        docs[f"calibration_data/{BEV_CAMERA}.json"] = manifest["conventions"]["bev"]
+    docs["semantic_annotations/seg_annotation_info.json"] = synwoodscape_palette_dict()
+    docs["dataset.json"] = manifest
+    texts = {rel: to_json_text(out / rel, doc, indent=1, error=DatasetError) for rel, doc in docs.items()}
     for cam in reader.cameras:
         src = reader.root / "calibration" / f"{cam}.json"
         paths.append(atomic_write_bytes(out / "calibration_data" / f"{cam}.json", src.read_bytes()))
-    if manifest["conventions"]["bev"] is not None:
-        paths.append(atomic_write_text(out / "calibration_data" / f"{BEV_CAMERA}.json",
-                                       json.dumps(manifest["conventions"]["bev"], indent=1) + "\n"))
-    else:  # a build without the BEV (rebuilt with bev=False) describes no BEV camera
+    if manifest["conventions"]["bev"] is None:  # a build without the BEV (rebuilt with bev=False) describes no BEV camera
         (out / "calibration_data" / f"{BEV_CAMERA}.json").unlink(missing_ok=True)
-    paths.append(atomic_write_text(out / "semantic_annotations" / "seg_annotation_info.json",
-                                   json.dumps(synwoodscape_palette_dict(), indent=1) + "\n"))
-    paths.append(atomic_write_text(out / "dataset.json", json.dumps(manifest, indent=1) + "\n"))
+    for rel, text in texts.items():
+        paths.append(atomic_write_text(out / rel, text))
     return paths

@@ -28,6 +28,8 @@ BEV_AXES = ("image up = vehicle forward (+x, ISO 8855), image right = vehicle ri
 """How a BEV pixel maps to the vehicle frame, in words (also in every BEV PNG's metadata)."""
 
 
+BEV_METRES_PER_PIXEL_RANGE = (1e-6, 1e6)
+"""The scale a BEV description may give (metres per pixel): float32 keeps it and its inverse finite."""
 _ROTATION_TOL = 1e-4  # |R^T R - I| and |det R - 1| of a stored rotation (float32 round trips: ~1e-7)
 
 
@@ -129,6 +131,13 @@ def _bev_camera_and_pose(d: Mapping[str, Any], where: str, error: type[JaxfishEr
     mpp = d.get("metres_per_pixel") if isinstance(d, Mapping) else None
     if isinstance(mpp, (int, float)) and not isinstance(mpp, bool) and not (math.isfinite(mpp) and mpp > 0):
         raise error(f"{where}: field '{prefix}metres_per_pixel': expected a positive number of metres, got {mpp!r}")
+    lo, hi = BEV_METRES_PER_PIXEL_RANGE
+    if isinstance(mpp, (int, float)) and not isinstance(mpp, bool) and not lo <= mpp <= hi:
+        raise error(f"{where}: field '{prefix}metres_per_pixel': expected {lo:g} to {hi:g} metres per pixel, got {mpp!r}")
+    for key in ("cx", "cy"):
+        c = d.get(key) if isinstance(d, Mapping) else None
+        if isinstance(c, (int, float)) and not isinstance(c, bool) and not (math.isfinite(c) and abs(c) <= 1e7):
+            raise error(f"{where}: field '{prefix}{key}': expected a finite number of pixels (at most 1e7), got {c!r}")
     try:
         cam = Orthographic(float(d["metres_per_pixel"]), width=int(d["width"]), height=int(d["height"]),
                            cx=float(d["cx"]), cy=float(d["cy"]), dtype=jnp.float32)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Mapping
@@ -18,8 +17,9 @@ from ..calibration import (
     Calibration,
 )
 from ..cameras import WoodScapeFisheye
+from ..refit._parameters import intrinsic_range_problem
 from ..transforms import CARLA_TO_ISO, Pose
-from ._json import read_json
+from ._json import read_json, write_json
 
 _WOODSCAPE_T = "translation"
 _SYNWOODSCAPE_T = "translation used in CARLA (CARLA reference)"
@@ -118,6 +118,10 @@ def calibration_from_dict(
             source, "intrinsic.k1",
             f"rho(theta) must increase at theta = 0 (k1 > 0 pixels/radian), got {intr['k1']!r}",
         )
+    for key in _INTRINSIC_NUMBERS:
+        problem = intrinsic_range_problem("radial_poly", key, vals[key])
+        if problem is not None:
+            raise _fail(source, f"intrinsic.{key}", problem)
     cam = WoodScapeFisheye(
         np.array([vals["k1"], vals["k2"], vals["k3"], vals["k4"]]),
         width=int(vals["width"]), height=int(vals["height"]),
@@ -184,10 +188,8 @@ def calibration_to_dict(calib: Calibration, *, flavor: str | None = None) -> dic
 
 def save_calibration(calib: Calibration, path: str | os.PathLike, *, flavor: str | None = None) -> Path:
     """Write a calibration as WoodScape JSON, atomically (a temporary file renamed into place)."""
-    from ._atomic import atomic_write_text
-
     path = Path(path)
-    atomic_write_text(path, json.dumps(calibration_to_dict(calib, flavor=flavor), indent=2) + "\n")
+    write_json(path, calibration_to_dict(calib, flavor=flavor), indent=2, error=CalibrationError)
     return path
 
 

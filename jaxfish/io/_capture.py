@@ -41,7 +41,7 @@ from ..scene import (
     simulate_radar,
     simulate_view,
 )
-from ._atomic import atomic_path, atomic_write_text
+from ._atomic import atomic_path
 from ._calibration_json import load_rig, save_rig
 from ._carla import (
     DVS_EVENT_DTYPE,
@@ -56,7 +56,7 @@ from ._carla import (
 )
 from ._folder import folder_lock, is_temporary, remove_temporaries
 from ._images import read_image, write_image
-from ._json import read_json
+from ._json import read_json, write_json
 
 CAPTURE_FORMAT = "jaxfish-capture"
 """Format name and version stored in ``capture.json``."""
@@ -75,7 +75,7 @@ def frame_dir(root: str | os.PathLike, frame: int) -> Path:
 
 
 def _json(path: Path, obj: Any) -> None:
-    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
+    write_json(path, obj, indent=2, error=CaptureError)
 
 
 def _npy(path: Path, arr: np.ndarray) -> None:
@@ -382,10 +382,18 @@ def _is_number(x: Any) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
-def _check_vector(record: dict[str, Any], key: str, path: Path, field: str) -> list[float]:
+MAX_COORDINATE = 1e6
+"""Largest magnitude (metres, or degrees for rotations) of a location, box extent or rotation read
+from ``actors.json`` / ``ego.json``: 1000 km, beyond any CARLA map, and small enough that box
+corners, displacements and their float32 products stay finite."""
+
+
+def _check_vector(record: dict[str, Any], key: str, path: Path, field: str, *, bound: float | None = None) -> list[float]:
     v = record.get(key)
     if not (isinstance(v, list) and len(v) == 3 and all(_is_number(x) for x in v)):
         raise CaptureError(f"{path}: field '{field}': expected 3 finite numbers, got {v!r}")
+    if bound is not None and not all(abs(x) <= bound for x in v):
+        raise CaptureError(f"{path}: field '{field}': expected 3 numbers of magnitude at most {bound:g}, got {v!r}")
     return v
 
 
@@ -393,8 +401,8 @@ def _check_transform(record: dict[str, Any], key: str, path: Path, field: str) -
     t = record.get(key)
     if not isinstance(t, dict):
         raise CaptureError(f"{path}: field '{field}': expected {{'location': [x, y, z], 'rotation': [pitch, yaw, roll]}}")
-    _check_vector(t, "location", path, f"{field}.location")
-    _check_vector(t, "rotation", path, f"{field}.rotation")
+    _check_vector(t, "location", path, f"{field}.location", bound=MAX_COORDINATE)
+    _check_vector(t, "rotation", path, f"{field}.rotation", bound=MAX_COORDINATE)
 
 
 def _check_actors(actors: list[Any], path: Path) -> None:
@@ -414,8 +422,8 @@ def _check_actors(actors: list[Any], path: Path) -> None:
         box = a.get("bounding_box")
         if not isinstance(box, dict):
             raise CaptureError(f"{path}: field '{where}.bounding_box': expected {{'location': [...], 'extent': [...]}}")
-        _check_vector(box, "location", path, f"{where}.bounding_box.location")
-        extent = _check_vector(box, "extent", path, f"{where}.bounding_box.extent")
+        _check_vector(box, "location", path, f"{where}.bounding_box.location", bound=MAX_COORDINATE)
+        extent = _check_vector(box, "extent", path, f"{where}.bounding_box.extent", bound=MAX_COORDINATE)
         if min(extent) < 0:
             raise CaptureError(f"{path}: field '{where}.bounding_box.extent': half sizes must be >= 0, got {extent}")
         if max(extent) == 0 and a.get("category") != "two_wheeler":  # CARLA's zero two-wheeler axes are fixed
@@ -451,6 +459,9 @@ def _check_header(meta: dict[str, Any], header: Path) -> None:
     tags = meta.get("carla_semantic_tags", "0.9.10")
     if tags not in CARLA_TAG_TABLES:
         raise bad("carla_semantic_tags", f"one of {CARLA_TAG_TABLES}")
+    dt = meta.get("dt_s", 0.1)
+    if not (_is_number(dt) and dt > 0):
+        raise bad("dt_s", "a positive finite number of seconds (the time between t-1 and t)")
 
 
 class CaptureReader:
@@ -592,8 +603,16 @@ class CaptureReader:
         return read_images(self._frame(frame) / name, instant, actor_ids=actor_ids, reuse=reuse, size=size)
 
     def height(self, frame: int, name: str = "bev") -> np.ndarray:
-        """Height map (metres above the ground, float32) of the ``"bev"`` or ``"front"`` view at t."""
-        return read_image(self._frame(frame) / name / "height_curr.exr")[..., 0]
+        """Height map (metres above the ground, float32) of the ``"bev"`` or ``"front"`` view at t; a
+        NaN or infinite height raises `CaptureError` naming the file and the first such pixel."""
+        path = self._frame(frame) / name / "height_curr.exr"
+        h = read_image(path)[..., 0]
+        bad = ~np.isfinite(h)
+        if bad.any():
+            row, col = (int(i) for i in np.argwhere(bad)[0])
+            raise CaptureError(f"{path}: {int(bad.sum())} height(s) are not finite numbers, the first {h[row, col]} "
+                               f"at pixel (u={col}, v={row})")
+        return h
 
     def _npy(self, path: Path, dtype=None, columns: int | None = None) -> np.ndarray:
         if not path.is_file():
@@ -608,17 +627,31 @@ class CaptureReader:
             raise CaptureError(f"{path}: expected an (N, {columns}) array, got shape {a.shape}")
         return a
 
+    def _finite(self, path: Path, a: np.ndarray) -> np.ndarray:
+        """``a``, after checking that its floating-point values (every float field of a structured
+        array) are finite: a NaN would reach the dataset's ``lidar_data`` as is."""
+        fields = a.dtype.names or (None,)
+        for name in fields:
+            values = a if name is None else a[name]
+            if values.dtype.kind == "f" and not np.all(np.isfinite(values)):
+                where = "" if name is None else f" field '{name}':"
+                raise CaptureError(f"{path}:{where} {int(np.sum(~np.isfinite(values)))} value(s) are not finite numbers")
+        return a
+
     def lidar(self, frame: int) -> np.ndarray:
         """Lidar points ``(N, 4)`` float32 ``x, y, z, intensity`` (sensor frame, Unreal axes)."""
-        return self._npy(self._frame(frame) / "lidar.npy", columns=4)
+        path = self._frame(frame) / "lidar.npy"
+        return self._finite(path, self._npy(path, columns=4))
 
     def semantic_lidar(self, frame: int) -> np.ndarray:
         """Semantic lidar points (CARLA's ``SemanticLidarDetection`` dtype)."""
-        return self._npy(self._frame(frame) / "semantic_lidar.npy")
+        path = self._frame(frame) / "semantic_lidar.npy"
+        return self._finite(path, self._npy(path))
 
     def radar(self, frame: int) -> np.ndarray:
         """Radar detections (``velocity, azimuth, altitude, depth``)."""
-        return self._npy(self._frame(frame) / "radar.npy")
+        path = self._frame(frame) / "radar.npy"
+        return self._finite(path, self._npy(path))
 
     def imu(self, frame: int) -> dict[str, Any]:
         """IMU reading at t."""

@@ -48,6 +48,7 @@ from ._atomic import atomic_path, atomic_write_text
 from ._capture import _npy, frame_dir, write_frame
 from ._carla import CARLA_MAX_DEPTH_M, DVS_EVENT_DTYPE, decode_semantic, encode_instance
 from ._images import write_image
+from ._json import to_json_text, write_json
 
 SUPPORTED_CARLA_VERSIONS = ("0.9.10", "0.9.11", "0.9.12", "0.9.13", "0.9.14", "0.9.15", "0.9.16")
 """CARLA releases the capture program supports (the ``carla`` client package must match the server)."""
@@ -750,7 +751,7 @@ def write_carla_frame(
         if hm.shape != curr.rgb.shape[:2]:
             raise CarlaCaptureError(f"{name}: height map {hm.shape} does not match the image {curr.rgb.shape[:2]}")
         write_image(d / name / "height_curr.exr", hm)
-    atomic_write_text(d / "carla_frame.json", json.dumps({"dvs_missing": sorted(set(dvs_missing))}, indent=1) + "\n")
+    write_json(d / "carla_frame.json", {"dvs_missing": sorted(set(dvs_missing))}, indent=1, error=CarlaCaptureError)
     return write_frame(root, frame, cameras={}, views={}, lidar=lidar, semantic_lidar=semantic_lidar, radar=radar,
                        imu=imu, gnss=gnss)
 
@@ -782,5 +783,7 @@ def finish_carla_header(
                                       "altitude_m": float(bev_altitude_m)}
     if geo is not None:
         sensors["gnss"]["geo_reference"] = {k: float(geo[k]) for k in ("latitude", "longitude", "altitude")}
-    atomic_write_text(root / "sensors.json", json.dumps(sensors, indent=2) + "\n")
-    atomic_write_text(root / "capture.json", json.dumps(header, indent=2) + "\n")
+    texts = {name: to_json_text(root / name, doc, indent=2, error=CarlaCaptureError)  # both valid before either is written
+             for name, doc in (("sensors.json", sensors), ("capture.json", header))}
+    for name, text in texts.items():
+        atomic_write_text(root / name, text)

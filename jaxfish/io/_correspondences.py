@@ -29,7 +29,6 @@ As in WoodScape/SynWoodScape files, the extrinsic may instead hold SynWoodScape'
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
@@ -43,7 +42,7 @@ from ..cameras import WoodScapeFisheye
 from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict
 from ..transforms import CARLA_TO_ISO, Pose
 from ._calibration_json import _SYNWOODSCAPE_T, _WOODSCAPE_T, calibration_from_dict, calibration_to_dict
-from ._json import read_json
+from ._json import read_json, write_json
 
 CORRESPONDENCE_FRAMES: tuple[str, ...] = ("board", "vehicle", "camera")
 """Values of a correspondences file's ``frame``."""
@@ -55,6 +54,11 @@ class CorrespondenceError(JaxfishError):
 
 def _read_json(path: Path, error: type[JaxfishError]) -> Any:
     return read_json(path, error)
+
+
+MAX_CORRESPONDENCE_VALUE = 1e7
+"""Largest magnitude of a correspondence's coordinate (metres, pixels) or weight: beyond any real
+calibration target, and small enough that squared residuals stay finite."""
 
 
 def _array(value: Any, cols: int | None, source: str, field: str) -> np.ndarray:
@@ -70,6 +74,9 @@ def _array(value: Any, cols: int | None, source: str, field: str) -> np.ndarray:
         raise CorrespondenceError(f"{source}: field '{field}': expected a list of numbers, got shape {a.shape}")
     if not np.all(np.isfinite(a)):
         raise CorrespondenceError(f"{source}: field '{field}': values must be finite")
+    if a.size and np.abs(a).max() > MAX_CORRESPONDENCE_VALUE:
+        raise CorrespondenceError(f"{source}: field '{field}': values must be at most {MAX_CORRESPONDENCE_VALUE:g} in "
+                                  f"magnitude, got {np.abs(a).max():g}")
     return a
 
 
@@ -145,10 +152,8 @@ def correspondences_to_dict(corr: Correspondences, *, frame: str = "board", view
 def save_correspondences(corr: Correspondences, path: str | os.PathLike, *, frame: str = "board",
                          view_names=None) -> Path:
     """Write correspondences as JSON, atomically."""
-    from ._atomic import atomic_write_text
-
     path = Path(path)
-    atomic_write_text(path, json.dumps(correspondences_to_dict(corr, frame=frame, view_names=view_names)) + "\n")
+    write_json(path, correspondences_to_dict(corr, frame=frame, view_names=view_names), indent=None)
     return path
 
 
@@ -234,8 +239,6 @@ def camera_calibration_to_dict(calib: Calibration) -> dict[str, Any]:
 
 def save_camera_calibration(calib: Calibration, path: str | os.PathLike) -> Path:
     """Write a calibration of any lens model as JSON, atomically."""
-    from ._atomic import atomic_write_text
-
     path = Path(path)
-    atomic_write_text(path, json.dumps(camera_calibration_to_dict(calib), indent=2) + "\n")
+    write_json(path, camera_calibration_to_dict(calib), indent=2, error=CalibrationError)
     return path

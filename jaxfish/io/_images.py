@@ -19,6 +19,7 @@ import OpenImageIO as oiio
 
 from .._errors import ImageError
 from ._atomic import atomic_path
+from ._json import to_json_text
 
 _WRITABLE = {".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg"}
 PNG_LEVEL = 1
@@ -123,7 +124,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
         spec.attribute("oiio:UnassociatedAlpha", 1)  # the pixels are written as given
         spec.attribute("DateTime", "")  # no timestamp (OpenEXR's capDate): the same pixels give the same bytes
         for name, value in (metadata or {}).items():
-            spec.attribute(name, json.dumps(value))
+            spec.attribute(name, to_json_text(f"{path} (metadata {name!r})", value, error=ImageError).rstrip("\n"))
         if not out.open(str(tmp), spec):
             raise ImageError(f"{path}: cannot open for writing ({out.geterror()})")
         ok = out.write_image(a)

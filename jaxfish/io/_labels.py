@@ -5,7 +5,7 @@ displacement text file."""
 from __future__ import annotations
 
 import functools
-import json
+import math
 import os
 import pickle
 from collections.abc import Mapping, Sequence
@@ -17,6 +17,7 @@ import numpy as np
 from .._errors import ImageError
 from ._atomic import atomic_path, atomic_write_bytes, atomic_write_text
 from ._images import PNG_LEVEL, read_image, read_image_metadata, write_image
+from ._json import write_json
 
 PALETTE_ATTRIBUTE = "jaxfish:palette"
 """Metadata key of the palette JSON in colour label PNGs."""
@@ -117,6 +118,8 @@ def write_boxes_3d_pickle(path: str | os.PathLike, boxes: Mapping[int, Any]) -> 
             raise ImageError(f"{path}: box {k}: corners must be an (8, 3) array of numbers ({e})") from e
         if a.shape != (8, 3):
             raise ImageError(f"{path}: box {k}: corners must be (8, 3), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ImageError(f"{path}: not written: box {k}: corners are not finite numbers")
         clean[int(k)] = a
     return atomic_write_bytes(path, pickle.dumps(clean, protocol=4))
 
@@ -134,7 +137,7 @@ def write_boxes_3d_ext_json(path: str | os.PathLike, boxes: Mapping[int, Mapping
                       "corners_vehicle": "ISO 8855 ego vehicle frame at t (x forward, y left, z up), metres"},
            "corner_order": "index = 4 ix + 2 iy + iz over the signs (-, +) of the box axes (CARLA get_local_vertices)",
            "boxes": rows}
-    return atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
+    return write_json(path, doc, indent=1, error=ImageError)
 
 
 def read_boxes_3d_pickle(path: str | os.PathLike) -> dict[int, Any]:
@@ -152,6 +155,8 @@ def write_displacements(path: str | os.PathLike, actor_id: Sequence[int], class_
     ``actor_id class_id displacement_m moving`` per actor (moving = displacement > threshold)."""
     lines = [f"# actor_id class_id displacement_m moving(threshold_m={threshold_m:g})"]
     for a, c, d in zip(actor_id, class_id, displacement_m, strict=True):
+        if not math.isfinite(float(d)):
+            raise ImageError(f"{path}: not written: the displacement of actor {int(a)} is not a finite number ({float(d)})")
         lines.append(f"{int(a)} {int(c)} {float(d):.6f} {int(float(d) > threshold_m)}")
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
@@ -463,6 +468,10 @@ def fisheye_constants(reader, camera: str, model, *, frame: int | None = None, l
                 raise CaptureError(f"{reader.root / 'capture.json'}: field 'face_size' missing or not positive")
             size = reader.face(frame, camera, reader.faces[0], actor_ids=False).rgb.shape[0]
         lut = build_lut(CubeRig(size, faces=tuple(reader.faces), dtype=jnp.float32), model)
+        if not bool(jnp.any(lut.valid)):  # an empty dataset, not a camera
+            raise CaptureError(f"{reader.root / 'calibration' / f'{camera}.json'}: field 'intrinsic': no pixel of camera "
+                               f"{camera} has a ray inside its lens and the capture's cube faces (every pixel invalid in "
+                               "float32): its lens parameters make the camera useless")
     return (lut, compiled_pixel_rays(model) if rays is None else rays,
             gt.event_map_from_lut(lut) if event_map is None else event_map)
 

@@ -139,9 +139,10 @@ class RefitResult(eqx.Module):
       and ``view{v}.tx, .ty, .tz`` (metres) for fitted poses; `parameters` their values (pose
       perturbations are 0 at the solution);
     - `covariance` ``(P, P)`` of the free parameters: ``σ² (JᵀJ)⁺`` at the solution with
-      ``σ² = sum rho / (2N - P)`` (Gauss-Newton approximation, robust weights included; not finite
-      when the data do not determine the free parameters);
-      `standard_deviations` its root diagonal;
+      ``σ² = sum rho / (2N - P)`` (Gauss-Newton approximation, robust weights included); NaN
+      throughout when the data do not determine the free parameters (the Jacobian's rank is below
+      ``P``: e.g. copies of one correspondence, see `determined`);
+      `standard_deviations` its root diagonal (NaN then too);
     - `num_steps`, `converged`: from optimistix (``converged`` = solver reported success).
     """
 
@@ -157,6 +158,12 @@ class RefitResult(eqx.Module):
     num_steps: Int[Array, ""]
     converged: Bool[Array, ""]
     parameter_names: tuple[str, ...] = eqx.field(static=True)
+
+    @property
+    def determined(self) -> bool:
+        """Whether the data determine every free parameter (the covariance is finite); False for a
+        degenerate set of correspondences, whose fitted values are one solution among many."""
+        return bool(np.all(np.isfinite(np.asarray(self.covariance))))
 
     def standard_deviation(self, name: str) -> float:
         """The standard deviation of one free parameter, by name."""
@@ -297,6 +304,14 @@ def _solve(camera, p0, free, rot0, t0, corr, fit_pose, loss_code, loss_scale, ma
     fixed_diag = jnp.diag(1.0 - free_all)
     cov = sigma2 * (jnp.linalg.inv(jac.T @ jac + fixed_diag) - fixed_diag)
     cov = 0.5 * (cov + cov.T)
+    # Data that do not determine the free parameters (a rank-deficient Jacobian: e.g. copies of
+    # one correspondence) have no covariance: NaN, never the finite numbers a singular inverse
+    # happens to give. Rank of the column-normalised Jacobian, NumPy's `matrix_rank` tolerance.
+    norms = jnp.sqrt(jnp.sum(jac * jac, axis=0))
+    singular = jnp.linalg.svd(jac / jnp.where(norms > 0, norms, 1.0), compute_uv=False)
+    tol = jnp.max(singular) * max(jac.shape) * jnp.finfo(dtype).eps
+    determined = jnp.sum(singular > tol).astype(dtype) >= jnp.sum(free_all)
+    cov = jnp.where(determined, cov, jnp.nan)
     return p, rot, t, (cov, _summarise(with_intrinsics(camera, p), rot, t, corr)), steps, ok
 
 

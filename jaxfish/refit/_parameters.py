@@ -34,6 +34,35 @@ PARAMETER_NAMES: dict[str, tuple[str, ...]] = {
 """Intrinsic parameter names of each model, in vector order (pixels for k of radial_poly,
 fx, fy, cx, cy, cx_offset, cy_offset; dimensionless otherwise)."""
 
+MAX_INTRINSIC = 1e7
+"""Largest magnitude of an intrinsic parameter read from a calibration file (pixels, pixels per
+radian^n, or dimensionless): beyond any real lens (a 2000 mm lens on 1 µm pixels has a focal length
+of 2e6 pixels), and small enough that projections stay finite in float32."""
+MIN_FOCAL_PX = 1e-3
+"""Smallest focal length (``fx``, ``fy``; radial_poly's ``k1``), pixels per radian: below it every
+ray lands on the principal point and unprojection divides by ~0."""
+ASPECT_RATIO_RANGE = (1e-3, 1e3)
+"""The ``aspect_ratio`` (fy / fx) of a radial_poly calibration lies in this range."""
+
+
+def intrinsic_range_problem(model: str, key: str, value: float) -> str | None:
+    """Why the finite intrinsic ``value`` of parameter ``key`` of lens ``model`` makes the camera
+    useless (beyond `MAX_INTRINSIC`, a focal length below `MIN_FOCAL_PX`, an aspect ratio outside
+    `ASPECT_RATIO_RANGE`), or None when it is sensible."""
+    if key in ("width", "height", "poly_order"):
+        return None
+    if abs(value) > MAX_INTRINSIC:
+        return f"expected a magnitude at most {MAX_INTRINSIC:g}, got {value!r}"
+    focal = key in ("fx", "fy") or (model == "radial_poly" and key == "k1")
+    if focal and value < MIN_FOCAL_PX:
+        return f"a focal length must be at least {MIN_FOCAL_PX:g} pixels per radian, got {value!r}"
+    if model == "radial_poly" and key == "aspect_ratio":
+        lo, hi = ASPECT_RATIO_RANGE
+        if not lo <= value <= hi:
+            return f"expected an aspect ratio (fy / fx) from {lo:g} to {hi:g}, got {value!r}"
+    return None
+
+
 MODEL_ALIASES: dict[str, str] = {
     "woodscape": "radial_poly",
     "kb": "kannala_brandt",
@@ -168,6 +197,10 @@ def intrinsics_from_dict(data: Mapping[str, Any], *, source: str = "<intrinsic>"
         if key in ("fx", "fy") and number <= 0:
             raise ValueError(f"{source}: field 'intrinsic.{key}': a focal length must be positive, got {val!r}")
         values[key] = number
+    for key, number in sorted(values.items()):
+        problem = intrinsic_range_problem(name, key, number)
+        if problem is not None:
+            raise ValueError(f"{source}: field 'intrinsic.{key}': {problem}")
     for key in ("width", "height"):
         if values[key] <= 0 or values[key] != int(values[key]):
             raise ValueError(f"{source}: field 'intrinsic.{key}': expected a positive whole number, got {data[key]!r}")

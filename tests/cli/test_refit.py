@@ -152,3 +152,37 @@ def test_convert_writes_its_calibration_and_report_both_or_neither(tmp_path):
                                       "-r", str(blocker / "report.json")])
     assert result.exit_code == 2 and "--report" in result.output and "not written either" in result.output, result.output
     assert not (tmp_path / "kb.json").exists()
+
+
+def test_refit_on_copies_of_one_correspondence_says_degenerate_and_writes_nothing(tmp_path):
+    views = [{"points": [[0.1, 0.2, 1.0]] * 20, "pixels": [[700.0, 500.0]] * 20}]
+    (tmp_path / "dup.json").write_text(json.dumps({"frame": "camera", "views": views}))
+    src = shared_path("calibration/woodscape/FV.json")
+    result = CliRunner().invoke(app, ["refit", str(tmp_path / "dup.json"), "-c", str(src), "-o", str(tmp_path / "fit.json"),
+                                      "-r", str(tmp_path / "report.json")])
+    assert result.exit_code == 1, result.output
+    assert "degenerate" in result.output and "20 points (1 distinct)" in result.output, result.output
+    assert "nan" not in result.output.lower()
+    assert not (tmp_path / "fit.json").exists() and not (tmp_path / "report.json").exists()
+
+
+def test_convert_and_refit_write_nothing_their_loader_refuses_or_that_is_not_finite(tmp_path, capsys):
+    """The last guard before the files: a calibration that reading back would refuse (fy = 0) or a
+    report holding a non-finite number writes neither file (exit status 1), naming the field."""
+    import typer
+
+    from jaxfish.cameras._kannala_brandt import KannalaBrandt
+    from jaxfish.cli._refit import _write_outputs
+
+    good = KannalaBrandt(330.0, 330.0, 640.0, 480.0, [0.01, 0.0, 0.0, 0.0], width=1280, height=966)
+    flat = KannalaBrandt(330.0, 0.0, 640.0, 480.0, [0.01, 0.0, 0.0, 0.0], width=1280, height=966)
+    out, report = tmp_path / "out.json", tmp_path / "report.json"
+    for camera, summary, field in ((flat, {"rms_px": 0.1}, "intrinsic.fy"), (good, {"max_px": float("inf")}, "max_px")):
+        calib = jf.Calibration("FV", camera, jf.Pose.identity(dtype=np.float64))
+        with pytest.raises(typer.Exit) as info:
+            _write_outputs(calib, out, report, summary)
+        assert info.value.exit_code == 1
+        assert f"'{field}'" in capsys.readouterr().err
+        assert not out.exists() and not report.exists() and not list(tmp_path.iterdir()), field
+    _write_outputs(jf.Calibration("FV", good, jf.Pose.identity(dtype=np.float64)), out, report, {"rms_px": 0.1})
+    assert load_camera_calibration(out).name == "FV" and json.loads(report.read_text()) == {"rms_px": 0.1}

@@ -55,6 +55,22 @@ def _corrupt_lidar(cap: Path) -> None:
     (cap / "frames/000000/lidar.npy").write_bytes(b"garbage")
 
 
+def _nan_height(cap: Path) -> None:
+    from jaxfish.io import read_image
+
+    path = cap / "frames/000000/bev/height_curr.exr"
+    h = np.array(read_image(path), np.float32)
+    h[2, 4] = np.nan
+    write_image(path, h)
+
+
+def _nan_radar(cap: Path) -> None:
+    path = cap / "frames/000000/radar.npy"
+    r = np.load(path).copy()
+    r["depth"][0] = np.inf
+    np.save(path, r)
+
+
 # (mutation of frame 0, text the reason must hold: the file and the field)
 SAMPLE_CASES = {
     "wrong_size_face": (_wrong_size_face, ["FV/front/rgb_curr.png", "16x16", "expected"]),
@@ -75,6 +91,15 @@ SAMPLE_CASES = {
                                           lambda d: d["actors"][-1].__setitem__("id", d["actors"][0]["id"])),
                      ["actors.json", ".id", "appears twice"]),
     "no_actors_list": (lambda c: (c / "frames/000000/actors.json").write_text("{}"), ["actors.json", "field 'actors'"]),
+    # numbers that would reach the dataset as NaN or infinity (box corners, distances, heights)
+    "huge_box": (lambda c: _edit_json(c / "frames/000000/actors.json",
+                                      lambda d: _first_actor(d)["bounding_box"]["extent"].__setitem__(0, 1e300)),
+                 ["actors.json", "bounding_box.extent", "at most 1e+06"]),
+    "huge_location": (lambda c: _edit_json(c / "frames/000000/actors.json",
+                                           lambda d: _first_actor(d)["transform"]["location"].__setitem__(2, -1e308)),
+                      ["actors.json", "transform.location", "at most 1e+06"]),
+    "nan_height": (_nan_height, ["bev/height_curr.exr", "not finite", "(u=4, v=2)"]),
+    "inf_radar": (_nan_radar, ["radar.npy", "field 'depth'", "not finite"]),
 }
 
 
@@ -115,6 +140,10 @@ CAPTURE_CASES = {
     "bev_scale": (lambda c: _edit_json(c / "sensors.json", lambda d: d["bev"].__setitem__("metres_per_pixel", 0)),
                   CaptureError, ["sensors.json", "bev.metres_per_pixel"]),
     "calibration": (lambda c: (c / "calibration/FV.json").write_text('{"extrinsic": {'), CalibrationError, ["FV.json"]),
+    "dt_nan": (lambda c: _edit_json(c / "capture.json", lambda d: d.__setitem__("dt_s", float("nan"))),
+               CaptureError, ["capture.json", "'dt_s'"]),
+    "useless_calibration": (lambda c: _edit_json(c / "calibration/FV.json", lambda d: d["intrinsic"].__setitem__("k1", 1e300)),
+                            CalibrationError, ["calibration/FV.json", "intrinsic.k1", "at most 1e+07"]),
 }
 
 
@@ -150,3 +179,18 @@ def test_a_bad_calibration_never_replaces_a_finished_datasets_copy(small_capture
 def test_bad_build_arguments_are_named(small_capture, tmp_path, kwargs, message):
     with pytest.raises(DatasetError, match=message):
         build_dataset(small_capture, tmp_path / "out", **kwargs)
+
+
+def test_dataset_files_with_a_non_finite_number_write_nothing(small_capture, tmp_path):
+    """The strict JSON writer is the last guard: a NaN that got past the readers (here put into the
+    reader's header after it was checked) names dataset.json and the field, and no dataset-level
+    file is written."""
+    from jaxfish.dataset import write_dataset_files
+    from jaxfish.io import CaptureReader
+
+    reader = CaptureReader(small_capture)
+    reader.meta = {**reader.meta, "dt_s": float("nan")}
+    out = tmp_path / "out"
+    with pytest.raises(DatasetError, match=r"dataset\.json: not written: field 'capture\.dt_s' is not a finite number"):
+        write_dataset_files(reader, out)
+    assert not out.exists() or not [p for p in out.rglob("*") if p.is_file()]

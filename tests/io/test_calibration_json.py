@@ -137,6 +137,13 @@ BAD_CASES = [
     (("extrinsic", "translation"), [1.0, None, 2.0], "extrinsic.translation[1]", "expected a number"),
     (("name",), "", "name", "non-empty"),
     (("intrinsic",), [1, 2], "intrinsic", "expected an object"),
+    # finite numbers that make the camera useless (every pixel invalid in float32, fy = 0, ...)
+    (("intrinsic", "k1"), 1e300, "intrinsic.k1", "at most 1e+07"),
+    (("intrinsic", "k1"), 1e-300, "intrinsic.k1", "at least 0.001"),
+    (("intrinsic", "k4"), -1e308, "intrinsic.k4", "at most 1e+07"),
+    (("intrinsic", "cy_offset"), 1e20, "intrinsic.cy_offset", "at most 1e+07"),
+    (("intrinsic", "aspect_ratio"), 1e-300, "intrinsic.aspect_ratio", "from 0.001 to 1000"),
+    (("intrinsic", "aspect_ratio"), 1e4, "intrinsic.aspect_ratio", "from 0.001 to 1000"),
 ]
 
 

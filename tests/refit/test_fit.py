@@ -161,3 +161,17 @@ def test_input_errors():
         Correspondences(np.ones((3, 2)), np.ones((3, 2)))
     with pytest.raises(ValueError, match="unknown lens model"):
         parameter_names("fisheye624")
+
+
+def test_copies_of_one_correspondence_are_degenerate():
+    """Twenty copies of one correspondence determine no lens: the covariance and the standard
+    deviations are NaN (not the 0 or finite numbers a singular inverse happens to give) and
+    `determined` is False; a full board set stays determined."""
+    corr, _, _, _ = scene()
+    i = int(np.argmax(np.asarray(corr.weight) > 0))
+    pts, pix = np.asarray(corr.points)[i], np.asarray(corr.pixels)[i]
+    copies = Correspondences(np.tile(pts, (20, 1)) + [0.0, 0.0, 0.5], np.tile(pix, (20, 1)), None, np.ones(20))
+    result = refit(initial_camera(), copies, fit_pose=False)
+    assert not result.determined
+    assert np.all(np.isnan(np.asarray(result.covariance))) and np.all(np.isnan(np.asarray(result.standard_deviations)))
+    assert refit(initial_camera(), corr).determined
