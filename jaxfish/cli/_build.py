@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, console, fail, say
+from ._app import app, console, fail, note, say
 
 
 def parse_frames(text: str | None) -> list[int] | None:
@@ -76,7 +76,10 @@ def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, sch
 
         report = build_dataset(capture_dir, out_dir, frames=frames, options=options, scheduler=scheduler,
                                workers=workers, processes=processes, progress=tick, rebuild=rebuild)
-    say(report.summary())
+    failures = [f"  sample {s} failed: {r}" for s, r in sorted(report.failed.items())]
+    say("\n".join(line for line in report.summary().split("\n") if line not in failures))  # the result: stdout
+    for line in failures:  # why samples failed: diagnostics, on stderr
+        note(line)
     return report
 
 

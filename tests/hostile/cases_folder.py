@@ -76,7 +76,7 @@ CASES = [
     Case("folder-build-resume-marker-without-fingerprint", "build {capture} {tmp}/out --frames 0",
          setup=lambda t: _marker(t, fingerprint=False), says=("records no capture fingerprint",)),
     Case("folder-build-rebuild-other-options", "build {capture} {tmp}/out --frames 0 --rebuild",
-         setup=lambda t: _marker(t, png_level=9), exit=0, says=("1 built", "removed first (rebuild): 00000"),
+         setup=lambda t: _marker(t, png_level=9), exit=0, stdout_says=("1 built", "removed first (rebuild): 00000"),
          kept=("{tmp}/out/dataset.json", "{tmp}/out/rgb_images/00000_FV.png")),
     Case("folder-synth-into-foreign-folder", SYNTH, setup=_user_file("out/rec.mcap"),
          says=("{tmp}/out", "not a jaxfish capture", "rec.mcap"), kept=("{tmp}/out/rec.mcap",),
