@@ -15,6 +15,14 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 REAL_CALIBRATIONS = ("woodscape/FV", "synwoodscape/FV", "synwoodscape/MVL", "synwoodscape/MVR", "synwoodscape/RV")
 
 
+def pytest_configure(config):
+    # pyproject's filterwarnings = error makes every warning a failure; dask.distributed warns when
+    # creating a server's scratch directory took over 1 s, which says how busy the machine is, not
+    # that anything is wrong (tests/dataset/test_busy_machine.py).
+    config.addinivalue_line(
+        "filterwarnings", "ignore:Creating scratch directories is taking a surprisingly long time:UserWarning")
+
+
 def shared_path(relative: str) -> Path:
     """A file of ``../shared`` (test data, read at run time); skips the test when absent."""
     path = SHARED / relative

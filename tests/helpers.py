@@ -1,10 +1,17 @@
-"""Test helpers: run one body eager, jitted and vmapped; finite differences."""
+"""Test helpers: run one body eager, jitted and vmapped; finite differences; wait for a subprocess's
+events without a deadline."""
 
 from __future__ import annotations
+
+import os
+import select
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 
 def three_ways(fn, *args):
@@ -27,3 +34,46 @@ def central_difference_jacobian(fn, x: np.ndarray, eps: float = 1e-6) -> np.ndar
         dx.flat[i] = eps
         cols.append((np.asarray(fn(x + dx)) - np.asarray(fn(x - dx))).ravel() / (2 * eps))
     return np.stack(cols, axis=-1)
+
+
+# ------------------------------------------------------------------ waiting on subprocesses
+HANG_GUARD_S = 1800.0
+"""Seconds a test waits on a subprocess before it gives up: a guard against a hang only, never a
+speed limit. Tests wait for events (a line on a pipe, the process's exit); on a loaded machine
+those may take minutes where an idle one takes seconds, and that must not fail a test."""
+
+
+def _hung(what: str) -> str:
+    return (f"{what} for {HANG_GUARD_S:.0f} s, so it hangs (tests.helpers.HANG_GUARD_S guards against a hang "
+            "only; a slow or loaded machine never gets near it)")
+
+
+def run_python(args, **kwargs) -> subprocess.CompletedProcess:
+    """``subprocess.run([sys.executable, *args], capture_output=True, text=True, **kwargs)``: waits
+    for the interpreter to exit, failing the test only when it hangs (`HANG_GUARD_S`)."""
+    try:
+        return subprocess.run([sys.executable, *map(str, args)], capture_output=True, text=True,
+                              timeout=HANG_GUARD_S, **kwargs)
+    except subprocess.TimeoutExpired:
+        pytest.fail(_hung(f"python {' '.join(map(str, args))[:200]}: no exit"))
+
+
+def wait_for_line(proc: subprocess.Popen, prefix: str | tuple[str, ...]) -> str | None:
+    """Read ``proc``'s stdout (a pipe) until a line that starts with ``prefix`` (or one of them);
+    return that line (without its newline), or None when the pipe closes first (the process
+    ended). Waits as long as the process keeps the pipe open, failing the test only when it hangs
+    (no line for `HANG_GUARD_S`)."""
+    fd, buf = proc.stdout.fileno(), b""
+    while True:
+        while b"\n" in buf:
+            line, buf = buf.split(b"\n", 1)
+            text = line.decode(errors="replace")
+            if text.startswith(prefix):
+                return text
+        ready, _, _ = select.select([fd], [], [], HANG_GUARD_S)
+        if not ready:
+            pytest.fail(_hung(f"process {proc.pid}: no line on its stdout (waiting for one starting {prefix!r})"))
+        chunk = os.read(fd, 65536)
+        if not chunk:
+            return None
+        buf += chunk

@@ -704,7 +704,9 @@ def local_cluster(workers: int, *, processes: bool = True):
     Dask's nannies export ``MALLOC_TRIM_THRESHOLD_=65536`` to their workers, which turns off
     glibc's dynamic mmap threshold: every image-sized buffer then becomes a fresh, page-faulting
     mapping, and a sample took 1.75x the CPU time of a serial build. These workers keep glibc's
-    defaults."""
+    defaults. The scheduler serves dask's HTTP routes (no dashboard) on a free loopback port, not
+    on dask's default 8787, so that clusters started at the same time (two builds) never compete
+    for that port."""
     try:
         import dask
         from distributed import LocalCluster
@@ -715,4 +717,5 @@ def local_cluster(workers: int, *, processes: bool = True):
     environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
                if k != "MALLOC_TRIM_THRESHOLD_"}
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
-        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None)
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None,
+                            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})

@@ -228,14 +228,12 @@ def test_bad_numbers_and_output_paths_are_one_line_errors(tmp_path, small_calibr
 
 def test_errors_are_never_hard_wrapped(tmp_path):
     """Without a terminal rich wraps at 80 columns: a long path must stay on the one error line."""
-    import subprocess
-    import sys
+    from tests.helpers import run_python
 
     long_dir = tmp_path / ("x" * 90)
     long_dir.mkdir()
-    proc = subprocess.run([sys.executable, "-c", "from jaxfish.cli import main; main()", "convert",
-                           str(long_dir / "missing_calibration.json"), "--to", "kb", "-o", str(tmp_path / "o.json")],
-                          capture_output=True, text=True, timeout=900)
+    proc = run_python(["-c", "from jaxfish.cli import main; main()", "convert",
+                       long_dir / "missing_calibration.json", "--to", "kb", "-o", tmp_path / "o.json"])
     assert proc.returncode == 2
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and "missing_calibration.json" in lines[0], proc.stderr
@@ -243,13 +241,11 @@ def test_errors_are_never_hard_wrapped(tmp_path):
 
 def test_report_lines_are_never_hard_wrapped_nor_read_as_markup(tmp_path):
     """The success lines (`jaxfish.cli._app.say`) keep a long path holding ``[...]`` whole, on one line."""
-    import subprocess
-    import sys
+    from tests.helpers import run_python
 
     src = shared_path("calibration/woodscape/FV.json")
     out_dir = tmp_path / ("y" * 90 + "[bold]")
     out_dir.mkdir()
-    proc = subprocess.run([sys.executable, "-c", "from jaxfish.cli import main; main()", "convert", str(src),
-                           "--to", "kb", "-o", str(out_dir / "kb.json")], capture_output=True, text=True, timeout=900)
+    proc = run_python(["-c", "from jaxfish.cli import main; main()", "convert", src, "--to", "kb", "-o", out_dir / "kb.json"])
     assert proc.returncode == 0, proc.stderr
     assert any(line == f"wrote {out_dir / 'kb.json'}" for line in proc.stdout.splitlines()), proc.stdout  # a result: stdout

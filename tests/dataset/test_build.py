@@ -8,10 +8,10 @@ import json
 import os
 import pickle
 import shutil
+import signal
 import struct
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -163,7 +163,9 @@ def test_dask_local_cluster_build_equals_the_serial_build(small_capture, referen
     _assert_same_tree(reference_build[0], out)
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+    # HTTP routes on a free port, not 8787: another cluster on the machine must not make it warn.
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None,
+                      scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster:
         report = build_dataset(small_capture, tmp_path / "via_scheduler", scheduler=cluster.scheduler_address)
     assert report.ok and sorted(report.built) == list(SAMPLES)
     _assert_same_tree(reference_build[0], tmp_path / "via_scheduler")
@@ -199,37 +201,60 @@ def test_missing_or_corrupt_capture_files_fail_their_sample_only(small_capture, 
 
 
 _KILL_SCRIPT = """
-import sys
+import os, sys, threading
 import jax
 jax.config.update("jax_enable_x64", True)  # as tests/conftest.py, so bytes match the reference build
 jax.config.update("jax_numpy_dtype_promotion", "strict")
-from jaxfish.dataset import build_dataset
+from jaxfish.dataset import build_dataset, sample_files
+
+# The build stops for good where the rename of sample 00001's PAUSE_AT-th file into place would
+# be: that file stays a written temporary (.part), the files before it are in place, its marker is
+# never written. This process then says "paused <temporary>" and waits for the test's SIGKILL.
+PAUSE_AT = len(sample_files("00001")) // 2
+real_replace, lock, renamed = os.replace, threading.Lock(), [0]
+
+def replace(src, dst):
+    if os.path.basename(os.fspath(dst)).startswith("00001"):
+        with lock:
+            renamed[0] += 1
+            n = renamed[0]
+        if n >= PAUSE_AT:  # this one and any later one (other write threads) never complete
+            if n == PAUSE_AT:
+                print("paused", os.fspath(src), flush=True)
+            threading.Event().wait()
+    return real_replace(src, dst)
+
+os.replace = replace
 build_dataset(sys.argv[1], sys.argv[2])
+print("finished: the build never paused", flush=True)
 """
 
 
 def test_sigkilled_build_resumes_to_the_same_bytes(small_capture, reference_build, tmp_path):
-    """A real `kill -9` while the second sample's files are being written, then a resume."""
+    """A real `kill -9` while the second sample's files are being written, then a resume. The
+    build process says when it is there (a line on its stdout): no clock decides when to kill."""
+    from tests.helpers import wait_for_line
+
     out = tmp_path / "dataset"
     log = tmp_path / "stderr.txt"
     with open(log, "wb") as err:
         proc = subprocess.Popen([sys.executable, "-c", _KILL_SCRIPT, str(small_capture), str(out)],
-                                stdout=subprocess.DEVNULL, stderr=err)
-        deadline = time.monotonic() + 240
+                                stdout=subprocess.PIPE, stderr=err)
         try:
-            while time.monotonic() < deadline and proc.poll() is None:
-                if (out / ".done" / "00000.json").exists() and any(out.rglob("*00001*")):
-                    break
-                time.sleep(0.005)
-            killed = proc.poll() is None
+            line = wait_for_line(proc, ("paused ", "finished"))  # None: it died
         finally:
-            proc.kill()  # SIGKILL
-            proc.wait(timeout=30)
-    assert is_complete(out, "00000"), log.read_text()[-2000:]
-    if killed:  # the usual case: sample 1 was cut off mid-way
-        assert not is_complete(out, "00001")
+            proc.kill()  # SIGKILL; nothing else happens meanwhile: the build is waiting for it
+            proc.wait()  # a SIGKILLed process always ends
+            proc.stdout.close()
+    assert line is not None and line.startswith("paused "), (line, log.read_text()[-2000:])
+    assert proc.returncode == -signal.SIGKILL
+    half_written = Path(line.removeprefix("paused "))
+    assert half_written.is_file() and ".part" in half_written.name  # what the kill left behind
+    assert is_complete(out, "00000") and not is_complete(out, "00001")
+    assert 0 < len([p for p in out.rglob("00001*") if p.is_file()]) < len(sample_files("00001"))
     report = build_dataset(small_capture, out)
-    assert report.ok and report.skipped == ["00000"]
+    assert report.ok and report.skipped == ["00000"] and report.built == ["00001"] and report.stale_removed >= 1
+    assert not half_written.exists()
     _assert_same_tree(reference_build[0], out)
 
 

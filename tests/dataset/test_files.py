@@ -41,9 +41,11 @@ def test_numpy_event_mapping_follows_the_rule():
 
 def test_npz_is_deterministic_and_numpy_readable(tmp_path, monkeypatch):
     arrays = {"events": np.arange(12, dtype=np.int64), "time_unit": np.asarray("us")}
+    # A fake clock for each write (the real one is never read): an hour apart, a writer that stamps the
+    # time (zipfile's writestr does) would differ.
+    monkeypatch.setattr(time, "time", lambda: 1.7e9)
     a = write_npz(tmp_path / "a.npz", **arrays).read_bytes()
-    now = time.time()
-    monkeypatch.setattr(time, "time", lambda: now + 3600.0)  # an hour later: np.savez would differ
+    monkeypatch.setattr(time, "time", lambda: 1.7e9 + 3600.0)
     b = write_npz(tmp_path / "b.npz", **arrays).read_bytes()
     assert a == b
     with np.load(tmp_path / "a.npz", allow_pickle=False) as z:
