@@ -681,7 +681,8 @@ def local_cluster(workers: int, *, processes: bool = True):
     Dask's nannies export ``MALLOC_TRIM_THRESHOLD_=65536`` to their workers, which turns off
     glibc's dynamic mmap threshold: every image-sized buffer then becomes a fresh, page-faulting
     mapping, and a sample took 1.75x the CPU time of a serial build. These workers keep glibc's
-    defaults.
+    defaults. No dashboard; the scheduler's HTTP routes (health, metrics) take a free port, not
+    dask's 8787 (another cluster on this machine would make dask warn on stderr).
 
     Process workers end with the process that calls this (its nannies run in it), however it ends,
     ``kill -9`` included, and ignore SIGINT and SIGTERM (`jaxfish.dataset._runtime.dask_setup`, a
@@ -695,11 +696,11 @@ def local_cluster(workers: int, *, processes: bool = True):
         raise DatasetError(f"workers must be at least 1, got {workers}")
     environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
                if k != "MALLOC_TRIM_THRESHOLD_"}
-    kwargs = {}
+    kwargs: dict[str, Any] = {}
     if processes:  # the nannies run in this process: their workers end with it (`_runtime.dask_setup`)
-        environ[BUILD_PID_ENV] = str(os.getpid())
+        kwargs["env"] = {BUILD_PID_ENV: str(os.getpid())}  # set in the worker only, over any inherited value
         preload = dask.config.get("distributed.worker.preload", None) or []
         kwargs["preload"] = ([preload] if isinstance(preload, str) else list(preload)) + ["jaxfish.dataset._runtime"]
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None,
-                            **kwargs)
+                            scheduler_kwargs={"dashboard_address": ":0"}, **kwargs)

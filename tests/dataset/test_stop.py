@@ -125,18 +125,23 @@ def _worker_stop_settings() -> tuple[int, bool, bool]:
             signal.getsignal(signal.SIGTERM) is signal.SIG_IGN)
 
 
-def test_local_cluster_workers_die_with_this_process_and_leave_signals_to_it():
+def test_local_cluster_workers_die_with_this_process_and_leave_signals_to_it(monkeypatch):
     """`local_cluster`'s process workers: SIGKILL when this process ends, SIGINT and SIGTERM
-    ignored (a Ctrl-C reaching the process group stops them through the build); thread workers
-    leave this process's settings alone."""
+    ignored (a Ctrl-C reaching the process group stops them through the build), also when this
+    process inherited another build's process id in its environment; thread workers leave this
+    process's settings alone."""
     from distributed import Client
 
     from jaxfish.dataset import local_cluster
+    from jaxfish.dataset._runtime import BUILD_PID_ENV
 
+    monkeypatch.setenv(BUILD_PID_ENV, "1")  # e.g. started by a process that ran a local cluster
     before = _worker_stop_settings()
     with local_cluster(1) as cluster, Client(cluster) as client:
         settings = list(client.run(_worker_stop_settings).values())
+        assert list(client.run(lambda: os.environ.get(BUILD_PID_ENV)).values()) == [str(os.getpid())]
     assert settings == [(signal.SIGKILL, True, True)]
+    assert os.environ[BUILD_PID_ENV] == "1"  # this process's environment is left alone
     with local_cluster(1, processes=False) as cluster, Client(cluster) as client:
         client.submit(sum, [1]).result()
     assert _worker_stop_settings() == before
