@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import sys
+import threading
 from pathlib import Path
 
 import typer
@@ -38,10 +42,62 @@ def _span(frames: list[int]) -> str:
     return ", ".join(map(str, frames[:8])) + (" ..." if len(frames) > 8 else "") if frames else "none"
 
 
+INTERRUPTED_STATUS = 130
+"""Exit status of a build stopped by SIGINT (Ctrl-C) or SIGTERM (128 + SIGINT, the shell's convention)."""
+
+
+@contextlib.contextmanager
+def stop_on_signals():
+    """While in the block, the first SIGINT or SIGTERM raises ``KeyboardInterrupt`` in the main
+    thread and later ones are ignored, so that the build's stop (ending its workers, removing the
+    samples it cut off) runs to its end. A signal ignored on entry (a background job's SIGINT)
+    stays ignored; the previous handlers are restored on exit."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    fired: list[int] = []
+
+    def handler(signum, _frame) -> None:
+        if not fired:
+            fired.append(signum)
+            raise KeyboardInterrupt
+
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(sig) not in (signal.SIG_IGN, None):
+            previous[sig] = signal.signal(sig, handler)
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
 def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
               workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
               motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1, rebuild: bool = False):
-    """Run `jaxfish.dataset.build_dataset` with a rich progress bar (samples/s); returns the report."""
+    """Run `jaxfish.dataset.build_dataset` with a rich progress bar (samples/s); returns the report.
+    SIGINT or SIGTERM stops the build (`jaxfish.dataset.BuildInterrupted`): one ``interrupted:``
+    line on stderr (then one line per sample that failed before), exit status `INTERRUPTED_STATUS`."""
+    try:
+        with stop_on_signals():
+            return _run_build(capture_dir, out_dir, frames=frames, scheduler=scheduler, workers=workers,
+                              processes=processes, backward_flow=backward_flow, bev=bev, write_threads=write_threads,
+                              motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames, rebuild=rebuild)
+    except KeyboardInterrupt as e:
+        from ..dataset import BuildInterrupted
+
+        done, failed = "", {}
+        if isinstance(e, BuildInterrupted):
+            done, failed = f"{len(e.complete)} of {len(e.report.samples)} sample(s) complete; ", e.report.failed
+        lines = [f"  sample {s} failed: {r}" for s, r in sorted(failed.items())]
+        print("\n".join([f"interrupted: {done}run the same command to resume", *lines]), file=sys.stderr, flush=True)
+        raise typer.Exit(INTERRUPTED_STATUS) from None
+
+
+def _run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
+               workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
+               motion_threshold_m: float, png_level: int, batch_frames: int, rebuild: bool):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ..dataset import BuildOptions, build_dataset

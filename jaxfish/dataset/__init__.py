@@ -2,6 +2,7 @@
 dataset out, resumable and scalable on dask.distributed (see ``docs/dataset.md``)."""
 
 from ._build import DONE_DIR as DONE_DIR
+from ._build import BuildInterrupted as BuildInterrupted
 from ._build import BuildOptions as BuildOptions
 from ._build import BuildReport as BuildReport
 from ._build import DatasetError as DatasetError

@@ -14,6 +14,7 @@ each failing sample with its reason, and finally writes the dataset-level files 
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -31,7 +32,7 @@ import numpy as np
 
 from .._errors import JaxfishError
 from ._layout import BEV_CAMERA, FISHEYE_CAMERAS, LAYOUT, LAYOUT_VERSION, sample_id
-from ._runtime import share_cores, tune_allocator
+from ._runtime import BUILD_PID_ENV, share_cores, tune_allocator
 
 DONE_DIR = ".done"
 """Folder of the per-sample completion markers."""
@@ -42,6 +43,18 @@ _NO_VALUE = object()
 
 class DatasetError(JaxfishError):
     """A dataset build cannot start or a sample cannot be built (names the file and the reason)."""
+
+
+class BuildInterrupted(KeyboardInterrupt):
+    """`build_dataset` stopped by a ``KeyboardInterrupt`` (Ctrl-C; ``jaxfish build`` turns SIGTERM
+    into one too). Its local workers have ended before it is raised and the files of the samples
+    it cut off are removed, so complete samples stay and re-running the same build resumes.
+    ``report``: the `BuildReport` so far; ``complete``: the requested samples that are complete."""
+
+    def __init__(self, report: BuildReport, complete: list[str]):
+        super().__init__(f"build interrupted: {len(complete)} of {len(report.samples)} sample(s) complete")
+        self.report = report
+        self.complete = complete
 
 
 @dataclasses.dataclass(frozen=True)
@@ -283,6 +296,33 @@ def _outdated_error(out: Path, outdated: dict[str, list[str]]) -> DatasetError:
                         f"build_dataset(..., rebuild=True)) or build into another folder")
 
 
+# ------------------------------------------------------------------- stopping thread workers
+_STOP = threading.Event()  # set while an interrupted build stops the samples running in this process's threads
+_RUNNING = [0]  # tasks running in this process
+_RUNNING_CHANGED = threading.Condition()
+
+
+class _Stopped(DatasetError):
+    """The build that runs this sample was interrupted (raised between two files of a sample)."""
+
+
+def _check_stop() -> None:
+    if _STOP.is_set():
+        raise _Stopped("build interrupted")
+
+
+@contextlib.contextmanager
+def _running():
+    with _RUNNING_CHANGED:
+        _RUNNING[0] += 1
+    try:
+        yield
+    finally:
+        with _RUNNING_CHANGED:
+            _RUNNING[0] -= 1
+            _RUNNING_CHANGED.notify_all()
+
+
 # ------------------------------------------------------------------------------------- one sample
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
@@ -409,6 +449,7 @@ def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[
     pending: list[concurrent.futures.Future] = []
 
     def hashed(fn, *args, **kwargs) -> list[tuple[Path, str]]:
+        _check_stop()
         return [(p, _sha256(p)) for p in fn(*args, **kwargs)]  # the bytes are still in the page cache
 
     def write(fn, *args, **kwargs):
@@ -439,6 +480,7 @@ def _write_sample(reader, out: Path, frame: int, cams: list[str], results: list[
         write(_sample_extras, reader, frame, out, sid)
         for f in pending:
             written.extend(f.result())
+        _check_stop()
         failed = False
     finally:
         if pool is not None:
@@ -502,6 +544,16 @@ def _batch_task(capture_dir: str, out_dir: str, frames: list[int], options: Buil
     except Exception:  # a failing sample is reported, never stops the others
         return [(sample_id(f), None) if is_complete(out_dir, sample_id(f)) else _sample_task(capture_dir, out_dir, f, options)
                 for f in frames]
+
+
+def _counted_batch_task(capture_dir: str, out_dir: str, frames: list[int],
+                        options: BuildOptions) -> list[tuple[str, str | None]]:
+    """`_batch_task` counted in ``_RUNNING`` (the serial and dask task): a thread worker of an
+    interrupted build writes nothing more."""
+    with _running():
+        if _STOP.is_set():
+            return [(sample_id(f), "build interrupted") for f in frames]
+        return _batch_task(capture_dir, out_dir, frames, options)
 
 
 def _batches(frames: list[int], size: int) -> list[list[int]]:
@@ -590,7 +642,12 @@ def build_dataset(
     on success). A failing sample (missing or corrupt capture file) is recorded in the report with
     its reason and does not stop the others. Finally writes ``dataset.json`` (listing the complete
     samples, the capture's fingerprint and the options), ``calibration_data`` and
-    ``semantic_annotations/seg_annotation_info.json``."""
+    ``semantic_annotations/seg_annotation_info.json``.
+
+    A ``KeyboardInterrupt`` while samples run stops the build: the workers of a local cluster end
+    (process workers are killed, thread workers stop before their next file), the files of the
+    samples cut off and the temporary files are deleted (on an external ``scheduler`` the pending
+    tasks are cancelled and files are left to the resume), then `BuildInterrupted` is raised."""
     from ..io import CaptureReader
 
     options = options or BuildOptions()
@@ -649,12 +706,16 @@ def _build_locked(reader, out: Path, frames: Sequence[int] | None, options: Buil
             report.failed[sid] = err
         tick(sid, err)
 
-    if todo and (scheduler is not None or workers is not None):  # absolute paths: workers may run elsewhere
-        _run_dask(str(reader.root.resolve()), str(out.resolve()), todo, options, scheduler, workers, processes, record)
-    else:
-        for frames_ in _batches(todo, options.batch_frames):
-            for result in _batch_task(str(reader.root), str(out), frames_, options):
-                record(*result)
+    try:
+        if todo and (scheduler is not None or workers is not None):  # absolute paths: workers may run elsewhere
+            _run_dask(str(reader.root.resolve()), str(out.resolve()), todo, options, scheduler, workers, processes,
+                      record)
+        else:
+            for frames_ in _batches(todo, options.batch_frames):
+                for result in _counted_batch_task(str(reader.root), str(out), frames_, options):
+                    record(*result)
+    except KeyboardInterrupt:  # every writer of this build has stopped (remote workers aside): clean up, report
+        raise _interrupted(report, out, todo, scheduler is None, start) from None
     from ._manifest import write_dataset_files
 
     write_dataset_files(reader, out, options)
@@ -663,26 +724,44 @@ def _build_locked(reader, out: Path, frames: Sequence[int] | None, options: Buil
     return report
 
 
+def _interrupted(report: BuildReport, out: Path, todo: list[int], clean: bool, start: float) -> BuildInterrupted:
+    """After an interrupt, once nothing of this build writes any more (``clean``): remove the files
+    of the samples it cut off (those not complete) and the temporary files; complete samples stay."""
+    if clean:
+        for f in todo:
+            if not is_complete(out, sample_id(f)):
+                remove_sample_files(out, sample_id(f))
+        remove_stale_temporaries(out)
+    report.built.sort()
+    report.seconds = time.perf_counter() - start
+    return BuildInterrupted(report, [s for s in report.samples if is_complete(out, s)])
+
+
 def _run_dask(capture_dir: str, out_dir: str, frames: list[int], options: BuildOptions, scheduler: str | None,
               workers: int | None, processes: bool, record: Callable[[str, str | None], None]) -> None:
+    """Run the samples on a cluster. On a ``KeyboardInterrupt`` the workers of a local cluster stop
+    before it propagates: process workers are killed (their running samples are cut off), thread
+    workers stop before their next file; on an external ``scheduler`` the pending tasks are
+    cancelled and the running ones end on their own."""
     try:
         from distributed import Client, as_completed
     except ImportError as e:  # pragma: no cover - depends on the environment
         raise DatasetError("dask.distributed is not installed: pip install 'jaxfish[distributed]'") from e
-    cluster = None
-    if scheduler is not None:
-        try:
-            client = Client(scheduler)
-        except (ValueError, OSError, TimeoutError) as e:  # a malformed or unreachable address
-            raise DatasetError(f"scheduler {scheduler!r}: cannot connect ({type(e).__name__}: {e})") from None
-    else:
-        cluster = local_cluster(int(workers or 1), processes=processes)
-        client = Client(cluster)
-        if processes:
-            share_cores(client)
+    cluster = client = quiet = None
+    futures: list = []
     try:
+        if scheduler is not None:
+            try:
+                client = Client(scheduler)
+            except (ValueError, OSError, TimeoutError) as e:  # a malformed or unreachable address
+                raise DatasetError(f"scheduler {scheduler!r}: cannot connect ({type(e).__name__}: {e})") from None
+        else:
+            cluster = local_cluster(int(workers or 1), processes=processes)
+            client = Client(cluster)
+            if processes:
+                share_cores(client)
         batches = {f"jaxfish-samples-{sample_id(b[0])}-{sample_id(b[-1])}": b for b in _batches(frames, options.batch_frames)}
-        futures = [client.submit(_batch_task, capture_dir, out_dir, b, options, key=key, pure=False)
+        futures = [client.submit(_counted_batch_task, capture_dir, out_dir, b, options, key=key, pure=False)
                    for key, b in batches.items()]
         for fut in as_completed(futures):
             try:
@@ -691,10 +770,82 @@ def _run_dask(capture_dir: str, out_dir: str, frames: list[int], options: BuildO
                 results = [(sample_id(f), f"worker failure: {type(e).__name__}: {e}") for f in batches[str(fut.key)]]
             for sid, err in results:
                 record(sid, err)
+    except KeyboardInterrupt:
+        quiet = _quiet_dask_logs()  # the workers' ends are expected: no warnings, no tracebacks
+        _stop_workers(client, cluster, futures, processes)
+        raise
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        try:
+            for closable in (client, cluster):
+                if closable is not None:  # after an interrupt, an error closing would only hide it
+                    with contextlib.suppress(*(() if quiet is None else (Exception,))):
+                        closable.close()
+        finally:
+            _STOP.clear()
+            if quiet is not None:
+                quiet()
+
+
+def _quiet_dask_logs() -> Callable[[], None]:
+    """Silence dask.distributed's loggers; returns the function that restores them."""
+    import logging
+
+    names = ["distributed"] + [n for n in list(logging.root.manager.loggerDict) if n.startswith("distributed.")]
+    loggers = [logging.getLogger(n) for n in names]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        if lg.name == "distributed" or lg.level != logging.NOTSET:
+            lg.setLevel(logging.CRITICAL + 1)
+
+    def restore() -> None:
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
+
+    return restore
+
+
+def _stop_workers(client, cluster, futures: list, processes: bool) -> None:
+    """Stop the workers of an interrupted build: when this returns, no sample of it is written any
+    more on this machine (local process workers have ended, local thread workers left their tasks)."""
+    if cluster is None:  # an external cluster: its workers are not ours to end
+        if client is not None and futures:
+            with contextlib.suppress(Exception):
+                client.cancel(futures)
+        return
+    if processes:
+        _end_local_workers(cluster)
+        return
+    _STOP.set()  # cleared once the cluster is closed: a task starting before that writes nothing
+    with _RUNNING_CHANGED:
+        _RUNNING_CHANGED.wait_for(lambda: _RUNNING[0] == 0)
+
+
+def _end_local_workers(cluster) -> list[int]:
+    """Kill the worker processes of a local process cluster (`local_cluster`) now, without letting
+    their nannies restart them, and return once they have ended (their process ids). A sample they
+    were writing is left cut off."""
+    import psutil
+
+    procs = []
+    for nanny in list(getattr(cluster, "workers", {}).values()):
+        with contextlib.suppress(Exception):
+            nanny.close_gracefully("jaxfish build interrupted")  # a nanny restarts a worker that dies, else
+        pid = getattr(nanny, "pid", None)
+        if pid:
+            with contextlib.suppress(psutil.Error):
+                procs.append(psutil.Process(pid))
+    for proc in procs:
+        with contextlib.suppress(psutil.Error):
+            proc.kill()
+    for proc in procs:  # ended = gone or a zombie (its nanny reaps it; reaping it here would confuse dask)
+        while True:
+            try:
+                if proc.status() == psutil.STATUS_ZOMBIE:
+                    break
+            except psutil.NoSuchProcess:
+                break
+            time.sleep(0.01)
+    return [p.pid for p in procs]
 
 
 def local_cluster(workers: int, *, processes: bool = True):
@@ -704,9 +855,12 @@ def local_cluster(workers: int, *, processes: bool = True):
     Dask's nannies export ``MALLOC_TRIM_THRESHOLD_=65536`` to their workers, which turns off
     glibc's dynamic mmap threshold: every image-sized buffer then becomes a fresh, page-faulting
     mapping, and a sample took 1.75x the CPU time of a serial build. These workers keep glibc's
-    defaults. The scheduler serves dask's HTTP routes (no dashboard) on a free loopback port, not
-    on dask's default 8787, so that clusters started at the same time (two builds) never compete
-    for that port."""
+    defaults. No dashboard; the scheduler's HTTP routes (health, metrics) take a free port, not
+    dask's 8787 (another cluster on this machine would make dask warn on stderr).
+
+    Process workers end with the process that calls this (its nannies run in it), however it ends,
+    ``kill -9`` included, and ignore SIGINT and SIGTERM (`jaxfish.dataset._runtime.dask_setup`, a
+    worker preload added to ``distributed.worker.preload``): stopping them is that process's job."""
     try:
         import dask
         from distributed import LocalCluster
@@ -716,6 +870,11 @@ def local_cluster(workers: int, *, processes: bool = True):
         raise DatasetError(f"workers must be at least 1, got {workers}")
     environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
                if k != "MALLOC_TRIM_THRESHOLD_"}
+    kwargs: dict[str, Any] = {}
+    if processes:  # the nannies run in this process: their workers end with it (`_runtime.dask_setup`)
+        kwargs["env"] = {BUILD_PID_ENV: str(os.getpid())}  # set in the worker only, over any inherited value
+        preload = dask.config.get("distributed.worker.preload", None) or []
+        kwargs["preload"] = ([preload] if isinstance(preload, str) else list(preload)) + ["jaxfish.dataset._runtime"]
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None,
-                            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
+                           scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, **kwargs)

@@ -1,5 +1,5 @@
-"""Process settings for bulk runs (edge code: they change the C allocator or the CPU affinity of
-whole processes)."""
+"""Process settings for bulk runs (edge code: they change the C allocator, the CPU affinity or the
+lifetime of whole processes)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,10 @@ import contextlib
 import ctypes
 import ctypes.util
 import os
+import signal
+import sys
 import threading
+import time
 from collections.abc import Sequence
 
 # glibc mallopt parameters (malloc.h).
@@ -94,3 +97,67 @@ def _pin_process(cores: tuple[int, ...]) -> None:
     for tid in os.listdir("/proc/self/task"):
         with contextlib.suppress(OSError):  # a thread that has just ended
             os.sched_setaffinity(int(tid), cores)
+
+
+# ------------------------------------------------------------------ local workers end with their build
+BUILD_PID_ENV = "JAXFISH_BUILD_PID"
+"""Environment variable naming the process whose local dask workers must not outlive it."""
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+WATCHDOG_PERIOD_S = 0.5
+"""How often `die_with_parent`'s watchdog thread looks at the parent process id."""
+
+
+def _kill_self() -> None:
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _set_parent_death_signal(signum: int) -> bool:
+    """``prctl(PR_SET_PDEATHSIG, signum)`` (Linux); False where unavailable."""
+    if not sys.platform.startswith("linux"):  # pragma: no cover - not Linux
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        prctl = libc.prctl
+    except (OSError, AttributeError):  # pragma: no cover - no C library prctl
+        return False
+    prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
+    prctl.restype = ctypes.c_int
+    return prctl(_PR_SET_PDEATHSIG, int(signum), 0, 0, 0) == 0
+
+
+def die_with_parent(parent_pid: int) -> bool:
+    """Make this process end (SIGKILL) as soon as its parent process ``parent_pid`` ends, however
+    the parent ends (``kill -9`` included). If ``parent_pid`` is not this process's parent any more
+    (it has already ended), this process ends now.
+
+    On Linux the kernel sends the signal (``prctl(PR_SET_PDEATHSIG, SIGKILL)``): immediate, even
+    while a C call holds the GIL. Everywhere, a daemon thread also compares ``os.getppid()`` with
+    ``parent_pid`` every `WATCHDOG_PERIOD_S` seconds (a process whose parent ends is adopted by
+    another). Returns True when the kernel-level signal is set."""
+    armed = _set_parent_death_signal(signal.SIGKILL)
+    if os.getppid() != parent_pid:  # the parent ended before the signal was set
+        _kill_self()
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(WATCHDOG_PERIOD_S)
+        _kill_self()
+
+    threading.Thread(target=watch, name="jaxfish parent watchdog", daemon=True).start()
+    return armed
+
+
+def dask_setup(worker) -> None:
+    """Dask worker preload (`jaxfish.dataset.local_cluster` names this module): a local worker
+    process ends with the process that started the cluster (`die_with_parent`, whose id
+    `BUILD_PID_ENV` holds; dask's nannies run in that process) and ignores SIGINT and SIGTERM, so
+    that a Ctrl-C reaching the whole process group stops the build through its own process, which
+    ends its workers. Does nothing in a worker without `BUILD_PID_ENV` or in the building process
+    itself (thread workers)."""
+    pid = os.environ.get(BUILD_PID_ENV, "")
+    if not pid.isdigit() or int(pid) == os.getpid():
+        return
+    die_with_parent(int(pid))
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
