@@ -1,5 +1,6 @@
 """Camera models: immutable pytrees with pure ``project`` / ``unproject``."""
 
+from ._base import MAX_IMAGE_SIDE as MAX_IMAGE_SIDE
 from ._base import AbstractCamera as AbstractCamera
 from ._double_sphere import DoubleSphere as DoubleSphere
 from ._equirectangular import Cylindrical as Cylindrical

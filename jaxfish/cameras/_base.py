@@ -92,6 +92,12 @@ class AbstractCamera(eqx.Module):
         return jax.tree_util.tree_map(cast, self)
 
 
+MAX_IMAGE_SIDE = 65536
+"""Largest width or height (pixels) of a camera image: every camera model refuses a larger one (one
+float32 image channel of 65536 x 65536 pixels is already 16 GiB; a typo such as ``1e12`` would
+otherwise reach an allocation)."""
+
+
 def _split_last(x: Array, n: int) -> tuple[Array, ...]:
     if x.shape[-1:] != (n,):
         raise ValueError(f"expected a trailing axis of size {n}, got shape {x.shape}")
@@ -109,10 +115,13 @@ def as_coordinates(x: ArrayLike, n: int, where: str) -> tuple[Array, jnp.dtype]:
 
 
 def check_image_size(width: int, height: int, where: str) -> tuple[int, int]:
-    """``(int(width), int(height))``, raising ``ValueError`` naming ``where`` unless both are positive."""
+    """``(int(width), int(height))``, raising ``ValueError`` naming ``where`` unless both are
+    positive and at most `MAX_IMAGE_SIDE`."""
     width, height = int(width), int(height)
     if width <= 0 or height <= 0:
         raise ValueError(f"{where}: image size must be positive, got {width}x{height}")
+    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
+        raise ValueError(f"{where}: image size {width}x{height} exceeds {MAX_IMAGE_SIDE} pixels per side")
     return width, height
 
 

@@ -89,6 +89,8 @@ def invert_increasing(f, residual, params, target: Float[Array, "*batch"], theta
     point), the solve is repeated from `bisection_guess`: a ``lax.cond`` on `all_of_batch`, so it
     runs only when needed and stays a branch under ``vmap`` over cameras."""
     dtype = target.dtype
+    if target.size == 0:  # no pixels: nothing to solve (lineax's diagonal solve reduces over them)
+        return jnp.zeros(target.shape, dtype), jnp.zeros(target.shape, bool)
 
     def newton(start):
         sol = optx.root_find(

@@ -45,23 +45,12 @@ def _load_npy(path: Path):
 
 
 def _parse_frames(text: str | None, available: list[int]) -> list[int]:
-    if text is None:
-        return list(available)
-    out: list[int] = []
-    for part in text.split(","):
-        part = part.strip()
-        try:
-            if "-" in part:
-                a, b = (int(p) for p in part.split("-", 1))
-                out.extend(range(a, b + 1))
-            elif part:
-                out.append(int(part))
-        except ValueError:
-            raise fail(f"--frames: {part!r} is not a frame number or range like 2-5") from None
-    missing = sorted(set(out) - set(available))
-    if missing:
-        raise fail(f"--frames: frame(s) {missing} not in the capture (it has {available})")
-    return out
+    """The frames ``--frames`` lists (every frame of the capture without it), checked against the
+    capture before a range is expanded (`parse_frames`)."""
+    from ._build import parse_frames
+
+    chosen = parse_frames(text, available)
+    return list(available) if chosen is None else chosen
 
 
 def _write_view(out: Path, stem: str, meta: dict, semantic, height=None, occupancy=None) -> list[Path]:

@@ -6,6 +6,7 @@ import contextlib
 import signal
 import sys
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 
 import typer
@@ -13,11 +14,17 @@ import typer
 from ._app import app, console, fail, note, say
 
 
-def parse_frames(text: str | None) -> list[int] | None:
-    """``"0,2,5-7"`` -> ``[0, 2, 5, 6, 7]``; None / empty -> None (every frame)."""
+def parse_frames(text: str | None, available: Sequence[int] | None = None, *, source: str = "the capture"
+                 ) -> list[int] | None:
+    """``"0,2,5-7"`` -> ``[0, 2, 5, 6, 7]``; None / empty -> None (every frame).
+
+    ``available``: the capture's frames (named ``source`` in messages). Every listed frame must be
+    one of them, and a range is checked against them before it is expanded (``0-999999999`` names
+    the first missing frames instead of building a billion-element list). Bad syntax or a frame
+    not available prints ``error: --frames ...`` and exits 2."""
     if not text:
         return None
-    out: list[int] = []
+    spans: list[tuple[int, int]] = []
     for part in text.split(","):
         part = part.strip()
         if not part:
@@ -27,11 +34,27 @@ def parse_frames(text: str | None) -> list[int] | None:
                 a, b = (int(v) for v in part.split("-", 1))
                 if b < a:
                     raise ValueError
-                out.extend(range(a, b + 1))
             else:
-                out.append(int(part))
+                a = b = int(part)
         except ValueError as e:
             raise fail(f"--frames: cannot read {part!r} (use e.g. 0,2,5-7)") from e
+        spans.append((a, b))
+    if available is None:
+        return [f for a, b in spans for f in range(a, b + 1)]
+    have = set(available)
+    out: list[int] = []
+    for a, b in spans:
+        inside = sorted(f for f in have if a <= f <= b)
+        if len(inside) != b - a + 1:  # at least one frame of the span is missing: name the first few
+            missing = []
+            f = a
+            while len(missing) < 6 and f <= b:  # ends within len(inside) + 6 steps
+                if f not in have:
+                    missing.append(f)
+                f += 1
+            shown = ", ".join(map(str, missing[:5])) + (" ..." if len(missing) > 5 else "")
+            raise fail(f"--frames: {shown} not in {source} (its frames: {_span(sorted(have))})")
+        out.extend(inside)
     return out
 
 
@@ -168,7 +191,12 @@ def build(
         raise fail(f"--workers must be at least 1, got {workers}")
     if write_threads < 0:
         raise fail(f"--write-threads must be >= 0, got {write_threads}")
-    report = run_build(capture_dir, out_dir, frames=parse_frames(frames), scheduler=scheduler, workers=workers,
+    chosen = None
+    if frames:  # checked against the capture's frames before anything is expanded or written
+        from ..io import CaptureReader
+
+        chosen = parse_frames(frames, CaptureReader(capture_dir).frames, source=str(capture_dir / "capture.json"))
+    report = run_build(capture_dir, out_dir, frames=chosen, scheduler=scheduler, workers=workers,
                        processes=processes, backward_flow=backward_flow, bev=bev, write_threads=write_threads,
                        motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames,
                        rebuild=rebuild)

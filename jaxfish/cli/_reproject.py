@@ -189,7 +189,7 @@ def cube2fisheye(
         calib = load_calibration(calibration, apply_errata=errata)
         images, size = [], None
         for name in names:
-            img = read_image(paths[name])
+            img = read_image(paths[name], lossless=kind != "rgb" and paths[name].suffix.lower() == ".png")
             if capture:  # CARLA's raw BGRA buffers (docs/capture_layout.md)
                 try:
                     img = _decode_capture(kind, img)
@@ -267,7 +267,7 @@ def reproject(
 
         calib = load_camera_calibration(calibration)  # any lens model (WoodScape files included)
         cam = calib.camera.astype(jnp.float32)
-        img = read_image(image)
+        img = read_image(image, lossless=kind != "rgb" and image.suffix.lower() == ".png")
         if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
             raise ImageError(
                 f"{image}: image is {img.shape[1]}x{img.shape[0]} but {calibration} describes {cam.width}x{cam.height} "

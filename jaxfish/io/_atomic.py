@@ -27,7 +27,8 @@ shared dataset unreadable to other users."""
 def atomic_path(path: str | os.PathLike, *, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is renamed onto ``path``
     (``os.replace``, atomic on POSIX) with the permissions of a plain ``open`` (`FILE_MODE`), on
-    error it is removed. The temporary name is ``.jaxfish-{run}-{stem}.{random}.part{suffix}``
+    error it is removed. An `OSError` writing the temporary file (a full disk, a quota) is raised
+    again naming ``path``. The temporary name is ``.jaxfish-{run}-{stem}.{random}.part{suffix}``
     (`jaxfish.io._folder`: a killed run's temporaries are recognised and removed by the next run,
     and no other file is); it keeps the destination's extension (or ``suffix``) so writers that
     dispatch on it work."""
@@ -41,7 +42,12 @@ def atomic_path(path: str | os.PathLike, *, suffix: str | None = None) -> Iterat
     os.close(fd)
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
+        try:
+            yield tmp_path
+        except OSError as e:  # writing the temporary file (e.g. ENOSPC): name the destination
+            if e.errno is None or e.filename not in (None, str(tmp_path)):
+                raise  # another file's error (a source the writer reads) names that file already
+            raise type(e)(e.errno, f"{path}: cannot write ({e.strerror})") from None
         os.chmod(tmp_path, FILE_MODE)
         try:
             os.replace(tmp_path, path)

@@ -16,10 +16,10 @@ from ..calibration import (
     SYNWOODSCAPE_CORRECTED_TRANSLATIONS_CARLA,
     Calibration,
 )
-from ..cameras import WoodScapeFisheye
+from ..cameras import MAX_IMAGE_SIDE, WoodScapeFisheye
 from ..refit._parameters import intrinsic_range_problem
 from ..transforms import CARLA_TO_ISO, Pose
-from ._json import read_json, write_json
+from ._json import read_json, regular_file, write_json
 
 _WOODSCAPE_T = "translation"
 _SYNWOODSCAPE_T = "translation used in CARLA (CARLA reference)"
@@ -111,6 +111,8 @@ def calibration_from_dict(
     for key in ("width", "height"):
         if vals[key] <= 0 or vals[key] != int(vals[key]):
             raise _fail(source, f"intrinsic.{key}", f"expected a positive whole number of pixels, got {intr[key]!r}")
+        if vals[key] > MAX_IMAGE_SIDE:
+            raise _fail(source, f"intrinsic.{key}", f"expected at most {MAX_IMAGE_SIDE} pixels, got {intr[key]!r}")
     if vals["aspect_ratio"] <= 0:
         raise _fail(source, "intrinsic.aspect_ratio", f"expected a positive number, got {intr['aspect_ratio']!r}")
     if vals["k1"] <= 0:
@@ -144,11 +146,10 @@ def load_calibration(path: str | os.PathLike, *, apply_errata: bool = False, dty
       #113): the published MVL/MVR translations are wrong. Other fixes: `eqx.tree_at` on the result.
 
     Raises `FileNotFoundError` for a missing file and `CalibrationError` (a `ValueError`) naming
-    the file and field for anything malformed.
+    the file and field for anything malformed, and naming the path when it is not a regular file
+    (a directory, a FIFO, a symbolic link loop).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: calibration file not found")
+    path = regular_file(path, CalibrationError, "calibration file")
     data = read_json(path, CalibrationError)
     return calibration_from_dict(data, source=str(path), apply_errata=apply_errata, dtype=dtype)
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from .._errors import ImageError, JaxfishError
 from ..calibration import Calibration
+from ..cameras import MAX_IMAGE_SIDE
 from ..scene import (
     RADAR_DTYPE,
     SEMANTIC_LIDAR_DTYPE,
@@ -56,7 +57,7 @@ from ._carla import (
 )
 from ._folder import folder_lock, is_temporary, remove_temporaries
 from ._images import read_image, write_image
-from ._json import read_json, write_json
+from ._json import read_json, regular_file, write_json
 
 CAPTURE_FORMAT = "jaxfish-capture"
 """Format name and version stored in ``capture.json``."""
@@ -120,14 +121,19 @@ def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = Tru
     (e.g. ``(capture root, camera, face)``) under which decoded ``curr`` images are kept, so that
     a later ``prev`` image that is a byte copy of them (consecutive ticks: see `CaptureReader`) is
     not decoded again; the arrays returned are then read-only. ``size``: the ``(H, W)`` every image
-    must have. A wrong size or pixel type raises `CaptureError` naming the file."""
+    must have. A wrong size or pixel type raises `CaptureError` naming the file; a depth, semantic
+    or instance file that is not a PNG (e.g. a JPEG renamed ``.png``: lossy labels and depth) and
+    any path that is not a regular file (a FIFO, a directory) raise `ImageError` naming it."""
     if instant not in INSTANTS:
         raise CaptureError(f"{directory}: instant must be one of {INSTANTS}, got {instant!r}")
 
     def load(kind: str, decode):
         path = directory / f"{kind}_{instant}.png"
         checked = _checked(decode, path, size)
-        return checked(read_image(path)) if reuse is None else _decoded_reusing(path, reuse + (kind,), instant, checked)
+        lossless = kind != "rgb"  # labels and encoded depth: a lossy file would read wrong values
+        if reuse is None:
+            return checked(read_image(path, lossless=lossless))
+        return _decoded_reusing(path, reuse + (kind,), instant, checked, lossless=lossless)
 
     rgb = load("rgb", bgra_to_rgb)
     depth = load("depth", decode_depth)
@@ -135,7 +141,7 @@ def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = Tru
     if not actor_ids:
         return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=None)  # type: ignore[arg-type]
     path = directory / f"instance_{instant}.png"
-    _, ids = _checked(decode_instance, path, size)(read_image(path))
+    _, ids = _checked(decode_instance, path, size)(read_image(path, lossless=True))
     return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=ids.astype(np.int32))
 
 
@@ -158,20 +164,21 @@ _LAST_CURR: dict[tuple[str, ...], tuple[bytes, np.ndarray]] = {}
 _LAST_CURR_LOCK = threading.Lock()
 
 
-def _decoded_reusing(path: Path, key: tuple[str, ...], instant: str, decode) -> np.ndarray:
+def _decoded_reusing(path: Path, key: tuple[str, ...], instant: str, decode, *, lossless: bool = False) -> np.ndarray:
     """``decode(read_image(path))``, except that a ``prev`` file whose bytes equal the last ``curr``
     file read under ``key`` returns that decoded array (an exact byte comparison, never a guess)."""
     try:
+        regular_file(path, ImageError, "image file")  # a FIFO would block read_bytes forever
         data = path.read_bytes()
-    except OSError:
-        return decode(read_image(path))  # read_image names the file and the reason
+    except (OSError, ImageError):
+        return decode(read_image(path, lossless=lossless))  # read_image names the file and the reason
     if instant == "prev":
         with _LAST_CURR_LOCK:
             hit = _LAST_CURR.get(key)
         if hit is not None and hit[0] == data:
             return hit[1]
-        return decode(read_image(path))
-    arr = decode(read_image(path))
+        return decode(read_image(path, lossless=lossless))
+    arr = decode(read_image(path, lossless=lossless))
     arr.setflags(write=False)  # shared with later readers
     with _LAST_CURR_LOCK:
         _LAST_CURR[key] = (data, arr)
@@ -374,6 +381,9 @@ def steps_per_frame(rig: Mapping[str, Calibration]) -> int:
     return len(rig) + 3
 
 
+MAX_ACTOR_ID = 65535
+"""Largest actor id of ``actors.json``: instance ids are 16 bits (the capture's ``instance_*.png``
+stores G + 256 B, the dataset's instance PNGs are uint16)."""
 CARLA_TAG_TABLES = ("0.9.10", "0.9.14")
 """Values of ``capture.json``'s ``carla_semantic_tags``: the tag table of CARLA 0.9.10-0.9.13 or of 0.9.14+."""
 
@@ -415,6 +425,9 @@ def _check_actors(actors: list[Any], path: Path) -> None:
         aid = a.get("id")
         if not isinstance(aid, int) or isinstance(aid, bool) or aid <= 0:
             raise CaptureError(f"{path}: field '{where}.id': expected a positive integer, got {aid!r}")
+        if aid > MAX_ACTOR_ID:
+            raise CaptureError(f"{path}: field '{where}.id': actor id {aid} above {MAX_ACTOR_ID} (instance ids are "
+                               "16 bits: the capture's G + 256 B and the dataset's instance PNGs)")
         if aid in seen:
             raise CaptureError(f"{path}: field '{where}.id': actor id {aid} appears twice")
         seen.add(aid)
@@ -456,12 +469,23 @@ def _check_header(meta: dict[str, Any], header: Path) -> None:
     size = meta.get("face_size", 1)
     if not isinstance(size, int) or isinstance(size, bool) or size <= 0:
         raise bad("face_size", "a positive number of pixels")
+    if size > MAX_IMAGE_SIDE:
+        raise bad("face_size", f"at most {MAX_IMAGE_SIDE} pixels")
     tags = meta.get("carla_semantic_tags", "0.9.10")
     if tags not in CARLA_TAG_TABLES:
         raise bad("carla_semantic_tags", f"one of {CARLA_TAG_TABLES}")
     dt = meta.get("dt_s", 0.1)
     if not (_is_number(dt) and dt > 0):
         raise bad("dt_s", "a positive finite number of seconds (the time between t-1 and t)")
+
+
+def _existing(path: Path) -> None:
+    """`CaptureError` naming ``path`` unless it is a regular file (missing: "file missing"; a
+    directory, a FIFO, a symbolic link loop: what it is, before anything blocks on reading it)."""
+    try:
+        regular_file(path, CaptureError)
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: file missing") from None
 
 
 class CaptureReader:
@@ -478,8 +502,10 @@ class CaptureReader:
         self._reuse_key = (str(self.root.resolve()),) if reuse_decoded else None  # the capture, once
         self._sensors: dict[str, Any] | None = None
         header = self.root / "capture.json"
-        if not header.is_file():
-            raise CaptureError(f"{header}: not a capture directory (capture.json missing)")
+        try:
+            regular_file(header, CaptureError)
+        except FileNotFoundError:
+            raise CaptureError(f"{header}: not a capture directory (capture.json missing)") from None
         self.meta: dict[str, Any] = read_json(header, CaptureError, obj=True)
         for key in ("format", "version", "frames", "cameras", "faces"):
             if key not in self.meta:
@@ -507,7 +533,7 @@ class CaptureReader:
         """The calibration of every fisheye camera (``calibration/*.json``)."""
         for name in self.cameras:
             path = self.root / "calibration" / f"{name}.json"
-            if not path.is_file():
+            if not os.path.lexists(path):  # anything else there (a FIFO, a loop) is named by load_calibration
                 raise CaptureError(f"{self.root / 'capture.json'}: field 'cameras' lists {name!r} but {path} is missing")
         return load_rig(self.root / "calibration", names=tuple(self.cameras))
 
@@ -519,8 +545,7 @@ class CaptureReader:
         return self._sensors
 
     def _read_json(self, path: Path) -> Any:
-        if not path.is_file():
-            raise CaptureError(f"{path}: file missing")
+        _existing(path)
         return read_json(path, CaptureError, obj=True)
 
     def _frame(self, frame: int) -> Path:
@@ -615,8 +640,7 @@ class CaptureReader:
         return h
 
     def _npy(self, path: Path, dtype=None, columns: int | None = None) -> np.ndarray:
-        if not path.is_file():
-            raise CaptureError(f"{path}: file missing")
+        _existing(path)
         try:
             a = np.load(path, allow_pickle=False)
         except (ValueError, OSError, EOFError) as e:

@@ -19,7 +19,7 @@ import OpenImageIO as oiio
 
 from .._errors import ImageError
 from ._atomic import atomic_path
-from ._json import to_json_text
+from ._json import regular_file, to_json_text
 
 _WRITABLE = {".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg"}
 PNG_LEVEL = 1
@@ -37,19 +37,44 @@ _DTYPES = {
 }
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+"""The first eight bytes of every PNG file."""
+_SIGNATURES = ((b"\xff\xd8\xff", "JPEG data"), (b"GIF8", "GIF data"), (b"BM", "BMP data"), (b"RIFF", "WebP/RIFF data"),
+               (b"v/1\x01", "OpenEXR data"), (b"II*\x00", "TIFF data"), (b"MM\x00*", "TIFF data"))
+
+
+def _sniff(head: bytes) -> str:
+    """What the first bytes of a file that is not a PNG look like."""
+    if not head:
+        return "an empty file"
+    return next((name for sig, name in _SIGNATURES if head.startswith(sig)), "data of another format")
+
+
 def is_png_level(level: Any) -> bool:
     """Whether ``level`` is a valid zlib level for `write_image` (an integer 0-9, not a bool)."""
     return isinstance(level, int) and not isinstance(level, bool) and 0 <= level <= 9
 
 
-def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None = None) -> np.ndarray:
+def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None = None,
+               lossless: bool = False) -> np.ndarray:
     """Read an image as ``(H, W, C)`` in the file's own dtype (uint8, uint16, float16 or float32).
 
     ``expect_shape`` (``(H, W)`` or ``(H, W, C)``) raises `ImageError` on a size mismatch.
+    ``lossless=True`` (labels, encoded depth): the file must be a PNG (its content, whatever its
+    name: a JPEG renamed ``.png`` is refused), else `ImageError` naming it. A path that is not a
+    regular file (a directory, a FIFO, a device) raises `ImageError` before anything is read.
     """
     path = Path(path)
-    if not path.is_file():
-        raise ImageError(f"{path}: image file not found")
+    try:
+        regular_file(path, ImageError, "image file")
+    except FileNotFoundError:
+        raise ImageError(f"{path}: image file not found") from None
+    if lossless:
+        with open(path, "rb") as fh:
+            head = fh.read(len(PNG_SIGNATURE))
+        if head != PNG_SIGNATURE:
+            found = _sniff(head)
+            raise ImageError(f"{path}: expected a lossless PNG file, found {found} (the PNG signature is missing)")
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # keep RGBA values as stored (no premultiplication)
     inp = oiio.ImageInput.open(str(path), config)
@@ -138,8 +163,10 @@ def read_image_metadata(path: str | os.PathLike, name: str) -> Any:
     """The JSON value of the text attribute ``name`` stored by `write_image` (``metadata=``); a
     missing file, attribute or invalid JSON raises `ImageError` naming the file and attribute."""
     path = Path(path)
-    if not path.is_file():
-        raise ImageError(f"{path}: image file not found")
+    try:
+        regular_file(path, ImageError, "image file")
+    except FileNotFoundError:
+        raise ImageError(f"{path}: image file not found") from None
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise ImageError(f"{path}: cannot open ({oiio.geterror()})")

@@ -36,8 +36,9 @@ def write_label_png(path: str | os.PathLike, labels: np.ndarray, *, png_level: i
 
 
 def read_label_png(path: str | os.PathLike) -> np.ndarray:
-    """Read an index PNG as ``(H, W)`` int32."""
-    return read_image(path)[..., 0].astype(np.int32)
+    """Read an index PNG as ``(H, W)`` int32; a file that is not a PNG by content (a JPEG renamed
+    ``.png``: wrong labels) raises `ImageError` naming it."""
+    return read_image(path, lossless=True)[..., 0].astype(np.int32)
 
 
 def write_color_png(path: str | os.PathLike, rgb: np.ndarray, palette: Mapping[str, Any] | None = None, *,

@@ -10,7 +10,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..cameras import AbstractCamera, WoodScapeFisheye
+from ..cameras import MAX_IMAGE_SIDE, AbstractCamera, WoodScapeFisheye
 from ..cameras._double_sphere import DoubleSphere
 from ..cameras._kannala_brandt import KannalaBrandt
 from ..cameras._unified import ExtendedUnifiedCamera, UnifiedCamera
@@ -204,6 +204,8 @@ def intrinsics_from_dict(data: Mapping[str, Any], *, source: str = "<intrinsic>"
     for key in ("width", "height"):
         if values[key] <= 0 or values[key] != int(values[key]):
             raise ValueError(f"{source}: field 'intrinsic.{key}': expected a positive whole number, got {data[key]!r}")
+        if values[key] > MAX_IMAGE_SIDE:
+            raise ValueError(f"{source}: field 'intrinsic.{key}': expected at most {MAX_IMAGE_SIDE} pixels, got {data[key]!r}")
     if name == "radial_poly" and values.get("poly_order", 4) != 4:
         raise ValueError(f"{source}: field 'intrinsic.poly_order': only 4 is supported, got {data['poly_order']!r}")
     vec = [values[k] for k in PARAMETER_NAMES[name]]

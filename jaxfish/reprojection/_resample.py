@@ -124,6 +124,8 @@ def pad_faces(
     x = jnp.asarray(faces)
     batch, _ = _split_source(x, lut, "pad_faces", channels=True)
     f, s, c = lut.num_faces, lut.source_width, x.shape[-1]
+    if x.size == 0:  # no channels or no frames: nothing to read (a reshape to -1 could not infer the batch)
+        return jnp.zeros(batch + (f, s + 2, s + 2, c), x.dtype)
     xb = x.reshape((-1, f, s, s, c))
     flat = xb.reshape((xb.shape[0], f * s * s, c))
     ring_vals = jax.vmap(lambda fl: _ring_values(fl, lut, x.dtype))(flat)  # (B, F * R, C)
@@ -149,6 +151,9 @@ def resample_bilinear(
     x = jnp.asarray(images)
     batch, _ = _split_source(x, lut, "resample_bilinear", channels=True)
     f, c = lut.num_faces, x.shape[-1]
+    if x.size == 0:  # no channels or no frames: an empty result of the right shape
+        valid_px = jnp.any(lut.valid, axis=-1)
+        return jnp.zeros(batch + valid_px.shape + (c,), x.dtype), valid_px
     sw = lut.source_width + 2 * lut.pad
     sh = lut.source_height + 2 * lut.pad
     frames = x.reshape((-1,) + lut.source_shape + (c,))
@@ -274,9 +279,13 @@ def resample_nearest(
     if not has_c:
         x = x[..., None]
     f, c = lut.num_faces, x.shape[-1]
-    flat = x.reshape((-1, f * lut.source_height * lut.source_width, c))
     n = lut.valid.shape[-1]
     valid_px = jnp.any(lut.valid, axis=-1)
+    if x.size == 0:  # no channels or no frames: an empty result of the right shape
+        out = jnp.zeros(batch + valid_px.shape + (c,), x.dtype)
+        return (out if has_c else out[..., 0]), (valid_px if reduce == "majority" or n == 1 else
+                                                  lut.valid[..., centre_sample(lut.supersample)])
+    flat = x.reshape((-1, f * lut.source_height * lut.source_width, c))
     idx = lut.nearest_index
     valid = lut.valid
     if n > 1 and reduce == "centre":
@@ -319,8 +328,11 @@ def resample_depth(
     if not jnp.issubdtype(x.dtype, jnp.floating):
         raise ValueError(f"resample_depth: depth must be floating point metres, got {x.dtype}")
     f, s_h, s_w = lut.source_shape
-    flat = x.reshape((-1, f * s_h * s_w))
     k = centre_sample(lut.supersample)
+    if x.size == 0:  # no frames: an empty result of the right shape
+        out_dtype = x.dtype if x.dtype.itemsize >= 4 else jnp.promote_types(x.dtype, jnp.float32)
+        return jnp.zeros(batch + lut.valid.shape[:-1], out_dtype), lut.valid[..., k]
+    flat = x.reshape((-1, f * s_h * s_w))
     uv = lut.uv[..., k, :]
     face = lut.face[..., k]
     valid = lut.valid[..., k]

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._numerics import eps_for, float_dtype, resolve_dtype, stack_last
@@ -25,10 +27,22 @@ def _matvec(r: Float[Array, "*b 3 3"], v: Float[Array, "*b 3"]) -> Float[Array, 
 
 
 def quaternion_xyzw_to_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
-    """Rotation matrix of a **scalar-last** quaternion ``(x, y, z, w)`` (normalised first)."""
+    """Rotation matrix of a **scalar-last** quaternion ``(x, y, z, w)`` (normalised first).
+
+    A quaternion of norm 0 (or with a non-finite component) has no rotation: concrete inputs raise
+    ``ValueError``; traced ones (inside ``jit``) raise at run time through `equinox.error_if`
+    (a ``JaxRuntimeError`` carrying the same message). Never a silent NaN matrix."""
     q = jnp.asarray(q)
     _check_trailing(q, (4,), "quaternion")
-    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    norm = jnp.linalg.norm(q, axis=-1, keepdims=True)
+    bad = ~(jnp.isfinite(norm) & (norm > 0))
+    message = "quaternion (x, y, z, w) of norm 0 or with a non-finite component: it has no rotation"
+    if isinstance(q, jax.core.Tracer) or isinstance(bad, jax.core.Tracer):
+        q = eqx.error_if(q, bad, message)
+    elif bool(np.any(np.asarray(bad))):
+        first = np.asarray(q).reshape(-1, 4)[int(np.argmax(np.asarray(bad).reshape(-1)))]
+        raise ValueError(f"{message}, got {first.tolist()}")
+    q = q / norm
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     rows = [
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -116,7 +130,8 @@ class Pose(eqx.Module):
 
     @classmethod
     def from_quaternion_xyzw(cls, quaternion: Float[ArrayLike, "*batch 4"], translation: Float[ArrayLike, "*batch 3"], *, dtype=None) -> Pose:
-        """From a **scalar-last** quaternion ``(x, y, z, w)`` (WoodScape / scipy order) and a translation."""
+        """From a **scalar-last** quaternion ``(x, y, z, w)`` (WoodScape / scipy order, normalised
+        first) and a translation; a quaternion of norm 0 raises (see `quaternion_xyzw_to_matrix`)."""
         dtype = resolve_dtype(dtype, quaternion, translation)
         return cls(quaternion_xyzw_to_matrix(jnp.asarray(quaternion, dtype)), translation, dtype=dtype)
 

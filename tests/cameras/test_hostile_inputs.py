@@ -125,3 +125,29 @@ def test_refit_residuals_have_a_finite_gradient_at_weight_zero():
     assert np.isfinite(np.asarray(grad)).all()
     r = np.asarray(reprojection_residuals(cam, corr))
     assert np.abs(r[0]).sum() > 0 and (r[1] == 0).all()  # weight 0: no residual
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+@pytest.mark.parametrize("shape", [(0,), (3, 0)])
+def test_empty_arrays_give_empty_results(name, shape):
+    cam = MODELS[name]()
+    rays, valid = cam.unproject(np.zeros(shape + (2,)))
+    assert rays.shape == shape + (3,) and valid.shape == shape
+    uv, valid = cam.project(np.zeros(shape + (3,)))
+    assert uv.shape == shape + (2,) and valid.shape == shape
+
+
+def test_image_sizes_above_the_bound_are_refused():
+    big = jf.cameras.MAX_IMAGE_SIDE + 1
+    makers = [lambda w: jf.WoodScapeFisheye((30.0, 1.0, 0.5, -0.1), width=w, height=H),
+              lambda w: jf.Pinhole(20.0, 20.0, 31.5, 23.5, width=w, height=H),
+              lambda w: jf.KannalaBrandt(20.0, 20.0, 31.5, 23.5, (0.02, -0.003, 0.001, -0.0001), width=w, height=H),
+              lambda w: jf.UnifiedCamera(20.0, 20.0, 31.5, 23.5, 0.6, width=w, height=H),
+              lambda w: jf.DoubleSphere(20.0, 20.0, 31.5, 23.5, -0.2, 0.6, width=w, height=H),
+              lambda w: jf.Equirectangular(width=w, height=H), lambda w: jf.Orthographic(0.1, width=w, height=H)]
+    for make in makers:
+        assert make(jf.cameras.MAX_IMAGE_SIDE).width == 65536
+        with pytest.raises(ValueError, match=rf"{big}x{H} exceeds 65536 pixels per side"):
+            make(big)
+        with pytest.raises(ValueError, match="exceeds 65536"):
+            make(10**12)

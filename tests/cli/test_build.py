@@ -45,3 +45,17 @@ def test_build_rejects_bad_arguments(capture, tmp_path):
     assert r.exit_code == 2 and "9 not in" in r.output and "frames: 0-1" in r.output, r.output
     assert not (tmp_path / "out").exists()  # bad input writes nothing
     assert parse_frames("0,2,5-7") == [0, 2, 5, 6, 7] and parse_frames(None) is None
+
+
+def test_frame_ranges_are_checked_against_the_capture_before_they_are_expanded(capsys):
+    import typer
+
+    assert parse_frames("0,2,5-7", [0, 1, 2, 5, 6, 7]) == [0, 2, 5, 6, 7]
+    assert parse_frames("1,0", [0, 1]) == [1, 0] and parse_frames(None, [0, 1]) is None
+    for text, says in (("0-999999999", "--frames: 2, 3, 4, 5, 6 ... not in cap/capture.json (its frames: 0-1)"),
+                       ("0-" + "9" * 4000, "2, 3, 4, 5, 6 ... not in"), ("1-3", "--frames: 2, 3 not in"),
+                       ("5-2", "cannot read '5-2'"), ("x", "cannot read 'x'")):
+        with pytest.raises(typer.Exit) as e:
+            parse_frames(text, [0, 1], source="cap/capture.json")
+        assert e.value.exit_code == 2
+        assert says in capsys.readouterr().err

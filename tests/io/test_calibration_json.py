@@ -126,6 +126,8 @@ BAD_CASES = [
     (("intrinsic", "width"), 0.0, "intrinsic.width", "positive whole number"),
     (("intrinsic", "height"), -966.0, "intrinsic.height", "positive whole number"),
     (("intrinsic", "width"), 1280.5, "intrinsic.width", "positive whole number"),
+    (("intrinsic", "width"), 1e12, "intrinsic.width", "at most 65536 pixels"),
+    (("intrinsic", "height"), 65537, "intrinsic.height", "at most 65536 pixels"),
     (("intrinsic", "aspect_ratio"), 0.0, "intrinsic.aspect_ratio", "positive"),
     (("intrinsic", "k1"), -3.0, "intrinsic.k1", "must increase"),
     (("intrinsic", "k1"), 0.0, "intrinsic.k1", "must increase"),
@@ -170,6 +172,33 @@ def test_unreadable_files(tmp_path):
     p = _write(tmp_path, "[1, 2]", "list.json")
     with pytest.raises(jf.CalibrationError, match="list.json"):
         jf.load_calibration(p)
+
+
+def test_paths_that_are_not_calibration_files(tmp_path):
+    import os
+
+    (tmp_path / "dir.json").mkdir()
+    with pytest.raises(jf.CalibrationError, match=r"dir\.json: is a directory, expected a calibration file"):
+        jf.load_calibration(tmp_path / "dir.json")
+    os.mkfifo(tmp_path / "pipe.json")  # reading it would block forever
+    with pytest.raises(jf.CalibrationError, match=r"pipe\.json: is a FIFO \(named pipe\)"):
+        jf.load_calibration(tmp_path / "pipe.json")
+    os.symlink(tmp_path / "b.json", tmp_path / "a.json")
+    os.symlink(tmp_path / "a.json", tmp_path / "b.json")
+    with pytest.raises(jf.CalibrationError, match=r"a\.json: cannot read the calibration file \(Too many levels"):
+        jf.load_calibration(tmp_path / "a.json")
+    with pytest.raises(FileNotFoundError, match=r"nope\.json: calibration file not found"):
+        jf.load_calibration(tmp_path / "nope.json")
+
+
+def test_numbers_beyond_the_float_range_name_the_field(tmp_path):
+    for literal, shown in (("1" + "0" * 400, "an integer of 401 digits"), ("9" * 5000, "an integer of 5000 digits"),
+                           ("1e400", "1e400")):
+        text = json.dumps(_mutate(("extrinsic", "quaternion"), [0.0, 0.0, 0.0, "HUGE"])).replace('"HUGE"', literal)
+        path = _write(tmp_path, text)
+        with pytest.raises(jf.CalibrationError, match=r"field 'extrinsic\.quaternion\[3\]': expected a finite "
+                                                      rf"number, got {shown}"):
+            jf.load_calibration(path)
 
 
 def test_errata_needs_a_known_name(tmp_path):

@@ -150,3 +150,87 @@ def test_reuse_decoded_prev_images_that_copy_the_previous_curr(tmp_path, capture
     np.testing.assert_array_equal(left1.depth_m, plain.face(1, "FV", "left", "prev").depth_m)
     forget_decoded_images()
     assert reader.face(1, "FV", "front", "prev", actor_ids=False).rgb is not curr0.rgb
+
+
+def _jpeg_over(path):
+    """Re-encode an image file as a JPEG under its own (``.png``) name."""
+    import os
+
+    import OpenImageIO as oiio
+
+    from jaxfish.io import read_image
+
+    pixels = np.ascontiguousarray(read_image(path)[..., :3])
+    jpeg = path.with_name("tmp.jpg")
+    out = oiio.ImageOutput.create(str(jpeg))
+    out.open(str(jpeg), oiio.ImageSpec(pixels.shape[1], pixels.shape[0], 3, oiio.UINT8))
+    out.write_image(pixels)
+    out.close()
+    os.replace(jpeg, path)
+
+
+@pytest.mark.parametrize("reuse", [False, True])
+def test_label_and_depth_faces_must_be_lossless_pngs_and_regular_files(tmp_path, capture, reuse):
+    import os
+    import shutil
+
+    from jaxfish import ImageError
+    from jaxfish.io import forget_decoded_images
+
+    root, *_ = capture
+    copy = tmp_path / "cap"
+    shutil.copytree(root, copy)
+    face = copy / "frames/000000/cameras/FV/front"
+    _jpeg_over(face / "rgb_curr.png")  # RGB may be lossy: it is read
+    forget_decoded_images()
+    reader = CaptureReader(copy, reuse_decoded=reuse)
+    assert reader.face(0, "FV", "front", "curr").rgb.shape == (FACE, FACE, 3)
+    for kind in ("semantic", "depth", "instance"):
+        shutil.copyfile(face / f"{kind}_prev.png", face / f"{kind}_curr.png.bak")
+        _jpeg_over(face / f"{kind}_curr.png")
+        with pytest.raises(ImageError, match=rf"{kind}_curr\.png: expected a lossless PNG file, found JPEG data"):
+            reader.face(0, "FV", "front", "curr")
+        os.replace(face / f"{kind}_curr.png.bak", face / f"{kind}_curr.png")
+    (face / "depth_prev.png").unlink()
+    os.mkfifo(face / "depth_prev.png")  # reading it would block forever
+    with pytest.raises(ImageError, match=r"depth_prev\.png: is a FIFO"):
+        reader.face(0, "FV", "front", "prev")
+    (face / "dvs.npy").unlink()
+    os.mkfifo(face / "dvs.npy")
+    with pytest.raises(CaptureError, match=r"dvs\.npy: is a FIFO"):
+        reader.dvs(0, "FV", "front")
+    forget_decoded_images()
+
+
+def test_actor_ids_must_fit_the_16_bit_instance_ids(tmp_path, capture):
+    import shutil
+
+    root, *_ = capture
+    copy = tmp_path / "cap"
+    shutil.copytree(root, copy)
+    path = copy / "frames/000000/actors.json"
+    doc = json.loads(path.read_text())
+    for bad in (65536, 70000, 2**70):
+        doc["actors"][1]["id"] = bad
+        path.write_text(json.dumps(doc))
+        with pytest.raises(CaptureError, match=rf"actors\.json: field 'actors\[1\]\.id': actor id {bad} above 65535"):
+            CaptureReader(copy).actors(0)
+    doc["actors"][1]["id"] = 65535
+    path.write_text(json.dumps(doc))
+    assert CaptureReader(copy).actors(0)[1]["id"] == 65535
+    path.write_text(path.read_text().replace('"location": [', '"location": [' + "1" + "0" * 400 + ", ", 1))
+    with pytest.raises(CaptureError, match=r"actors\.json: field 'actors\[0\]\..*location\[0\]': .*401 digits"):
+        CaptureReader(copy).actors(0)
+
+
+def test_face_size_is_bounded(tmp_path, capture):
+    import shutil
+
+    root, *_ = capture
+    copy = tmp_path / "cap"
+    shutil.copytree(root, copy)
+    header = json.loads((copy / "capture.json").read_text())
+    header["face_size"] = 10**9
+    (copy / "capture.json").write_text(json.dumps(header))
+    with pytest.raises(CaptureError, match=r"capture\.json: field 'face_size': expected at most 65536 pixels"):
+        CaptureReader(copy)

@@ -132,3 +132,42 @@ def test_png_level_and_depth_exr(tmp_path):
     assert np.array_equal(read_depth_exr(p), d) and read_image_metadata(p, DEPTH_ATTRIBUTE) == {"unit": "m"}
     with pytest.raises(ImageError, match="channel names"):
         write_image(tmp_path / "c.exr", d, channel_names=("Z", "W"))
+
+
+def _jpeg_named_png(tmp_path):
+    import OpenImageIO as oiio
+
+    pixels = np.random.default_rng(0).integers(0, 23, (16, 16, 3), dtype=np.uint8)
+    jpeg = tmp_path / "x.jpg"
+    out = oiio.ImageOutput.create(str(jpeg))
+    out.open(str(jpeg), oiio.ImageSpec(16, 16, 3, oiio.UINT8))
+    out.write_image(pixels)
+    out.close()
+    path = tmp_path / "semantic.png"
+    os.replace(jpeg, path)
+    return path, pixels
+
+
+def test_lossless_reads_refuse_a_jpeg_renamed_png(tmp_path):
+    path, pixels = _jpeg_named_png(tmp_path)
+    lossy = read_image(path)  # OpenImageIO reads by content: the JPEG decodes, with wrong values
+    assert lossy.shape == pixels.shape and not np.array_equal(lossy, pixels)
+    with pytest.raises(ImageError, match=r"semantic\.png: expected a lossless PNG file, found JPEG data"):
+        read_image(path, lossless=True)
+    empty = tmp_path / "empty.png"
+    empty.write_bytes(b"")
+    with pytest.raises(ImageError, match=r"empty\.png: expected a lossless PNG file, found an empty file"):
+        read_image(empty, lossless=True)
+    png = write_image(tmp_path / "ok.png", pixels)
+    assert np.array_equal(read_image(png, lossless=True), pixels)
+
+
+def test_paths_that_are_not_regular_files_are_refused_before_reading(tmp_path):
+    os.mkfifo(tmp_path / "face.png")  # reading it would block forever
+    with pytest.raises(ImageError, match=r"face\.png: is a FIFO \(named pipe\), expected a regular image file"):
+        read_image(tmp_path / "face.png")
+    with pytest.raises(ImageError, match=r"face\.png: is a FIFO"):
+        read_image_metadata(tmp_path / "face.png", "x")
+    (tmp_path / "dir.png").mkdir()
+    with pytest.raises(ImageError, match=r"dir\.png: is a directory"):
+        read_image(tmp_path / "dir.png")

@@ -92,3 +92,16 @@ def test_box_slots_share_one_size_across_actor_counts():
              "transform": {"location": [5, 0, 0], "rotation": [0, 0, 0]}}
     boxes = gt.boxes_from_actors([actor], "t", pad_to=box_slots(1))
     assert boxes.num_boxes == q and int(np.sum(np.asarray(boxes.active))) == 1
+
+
+def test_a_label_png_that_is_a_jpeg_is_refused(tmp_path):
+    import OpenImageIO as oiio
+
+    path = tmp_path / "labels.png"
+    out = oiio.ImageOutput.create("x.jpg")
+    out.open(str(tmp_path / "x.jpg"), oiio.ImageSpec(8, 8, 1, oiio.UINT8))
+    out.write_image(np.full((8, 8, 1), 7, np.uint8))
+    out.close()
+    (tmp_path / "x.jpg").rename(path)
+    with pytest.raises(ImageError, match=r"labels\.png: expected a lossless PNG file, found JPEG data"):
+        read_label_png(path)

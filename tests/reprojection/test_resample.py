@@ -288,3 +288,22 @@ def test_bilinear_border_pixels_equal_the_padded_faces(face_size, jit_build_lut,
     bare = eqx.tree_at(lambda t: (t.border_pixel, t.border_fits), lut, (None, None), is_leaf=lambda v: v is None)
     got_bare, _ = jit_kernels["bilinear"](faces, bare)
     np.testing.assert_array_equal(np.asarray(got_bare), np.asarray(got))
+
+
+def test_empty_channels_and_frames_give_empty_results(cube_lut, small_rig):
+    from jaxfish.reprojection import resample_depth, resample_nearest
+
+    from .conftest import FACE_SIZE, FISHEYE_H, FISHEYE_W
+
+    s, f = FACE_SIZE, len(small_rig.faces)
+    out, valid = resample_bilinear(np.zeros((f, s, s, 0), np.uint8), cube_lut)
+    assert out.shape == (FISHEYE_H, FISHEYE_W, 0) and out.dtype == np.uint8 and valid.shape == (FISHEYE_H, FISHEYE_W)
+    out, _ = resample_bilinear(np.zeros((0, f, s, s, 3), np.float32), cube_lut)
+    assert out.shape == (0, FISHEYE_H, FISHEYE_W, 3)
+    out, _ = resample_nearest(np.zeros((f, s, s, 0), np.int32), cube_lut)
+    assert out.shape == (FISHEYE_H, FISHEYE_W, 0)
+    out, _ = resample_nearest(np.zeros((0, f, s, s), np.uint8), cube_lut)
+    assert out.shape == (0, FISHEYE_H, FISHEYE_W)
+    out, valid = resample_depth(np.zeros((0, f, s, s), np.float32), cube_lut)
+    assert out.shape == (0, FISHEYE_H, FISHEYE_W) and valid.shape == (FISHEYE_H, FISHEYE_W)
+    assert pad_faces(np.zeros((f, s, s, 0), np.uint8), cube_lut).shape == (f, s + 2, s + 2, 0)

@@ -162,3 +162,16 @@ def test_shape_errors():
         jf.Pose(np.eye(3), np.zeros(2))
     with pytest.raises(ValueError, match="quaternion"):
         quaternion_xyzw_to_matrix(np.zeros(3))
+
+
+def test_a_zero_quaternion_is_refused_never_a_silent_nan():
+    from jaxfish.transforms import quaternion_xyzw_to_matrix
+
+    for q in ([0.0, 0.0, 0.0, 0.0], [[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0]], [np.nan, 0.0, 0.0, 1.0],
+              [np.inf, 0.0, 0.0, 1.0]):
+        with pytest.raises(ValueError, match=r"quaternion \(x, y, z, w\) of norm 0 or with a non-finite component"):
+            jf.Pose.from_quaternion_xyzw(q, np.zeros(np.shape(q)[:-1] + (3,)))
+    with pytest.raises(Exception, match="of norm 0 or with a non-finite component"):  # inside jit: at run time
+        jax.block_until_ready(jax.jit(quaternion_xyzw_to_matrix)(jnp.zeros(4)))
+    r = jax.jit(quaternion_xyzw_to_matrix)(jnp.array([0.0, 0.0, 0.0, 2.0]))  # any non-zero norm is normalised
+    np.testing.assert_allclose(r, np.eye(3), atol=1e-7)
