@@ -7,6 +7,7 @@ import os
 import select
 import subprocess
 import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -77,3 +78,16 @@ def wait_for_line(proc: subprocess.Popen, prefix: str | tuple[str, ...]) -> str 
         if not chunk:
             return None
         buf += chunk
+
+
+def tree_bytes(root: Path) -> dict[str, bytes]:
+    """``{relative path: bytes}`` of every file under ``root``."""
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def assert_same_tree(a: Path, b: Path) -> None:
+    """The folders ``a`` and ``b`` hold the same files with the same bytes."""
+    ta, tb = tree_bytes(a), tree_bytes(b)
+    assert sorted(ta) == sorted(tb)
+    differ = [k for k in ta if ta[k] != tb[k]]
+    assert not differ, f"files differ: {differ[:10]}"

@@ -21,19 +21,9 @@ import pytest
 
 from jaxfish.dataset import LAYOUT, build_dataset, is_complete, sample_files
 from jaxfish.io._folder import is_temporary
+from tests.helpers import assert_same_tree
 
 SAMPLES = ("00000", "00001")
-
-
-def _tree(root: Path) -> dict[str, bytes]:
-    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
-
-
-def _assert_same_tree(a: Path, b: Path) -> None:
-    ta, tb = _tree(a), _tree(b)
-    assert sorted(ta) == sorted(tb)
-    differ = [k for k in ta if ta[k] != tb[k]]
-    assert not differ, f"files differ: {differ[:10]}"
 
 
 # ------------------------------------------------------------------ a loader from dataset.json alone
@@ -147,10 +137,10 @@ def test_killed_build_resumes_to_the_same_bytes(small_capture, reference_build, 
     stale.write_bytes(b"half a png")
     report = build_dataset(small_capture, out)
     assert report.ok and report.built == list(SAMPLES) and report.stale_removed >= 1
-    _assert_same_tree(reference_build[0], out)
+    assert_same_tree(reference_build[0], out)
     again = build_dataset(small_capture, out)  # everything complete: nothing rebuilt
     assert again.skipped == list(SAMPLES) and not again.built
-    _assert_same_tree(reference_build[0], out)
+    assert_same_tree(reference_build[0], out)
 
 
 def test_dask_local_cluster_build_equals_the_serial_build(small_capture, reference_build, tmp_path):
@@ -160,7 +150,7 @@ def test_dask_local_cluster_build_equals_the_serial_build(small_capture, referen
     # compile JAX afresh, too slow for a unit test (scripts/bench_build.py times them).
     report = build_dataset(small_capture, out, workers=2, processes=False)
     assert report.ok and sorted(report.built) == list(SAMPLES)
-    _assert_same_tree(reference_build[0], out)
+    assert_same_tree(reference_build[0], out)
     from distributed import LocalCluster
 
     # HTTP routes on a free port, not 8787: another cluster on the machine must not make it warn.
@@ -168,7 +158,7 @@ def test_dask_local_cluster_build_equals_the_serial_build(small_capture, referen
                       scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster:
         report = build_dataset(small_capture, tmp_path / "via_scheduler", scheduler=cluster.scheduler_address)
     assert report.ok and sorted(report.built) == list(SAMPLES)
-    _assert_same_tree(reference_build[0], tmp_path / "via_scheduler")
+    assert_same_tree(reference_build[0], tmp_path / "via_scheduler")
 
 
 def _copy(capture: Path, tmp_path: Path, name: str) -> Path:
@@ -255,7 +245,7 @@ def test_sigkilled_build_resumes_to_the_same_bytes(small_capture, reference_buil
     report = build_dataset(small_capture, out)
     assert report.ok and report.skipped == ["00000"] and report.built == ["00001"] and report.stale_removed >= 1
     assert not half_written.exists()
-    _assert_same_tree(reference_build[0], out)
+    assert_same_tree(reference_build[0], out)
 
 
 def test_backward_flow_option_writes_the_t_to_t_minus_1_flow(small_capture, reference_build, tmp_path):
@@ -351,11 +341,11 @@ def test_batched_frames_build_equals_the_serial_build_and_isolates_failures(smal
     opts = BuildOptions(batch_frames=2)
     report = build_dataset(small_capture, tmp_path / "batched", options=opts)
     assert report.ok and sorted(report.built) == list(SAMPLES)
-    _assert_same_tree(reference_build[0], tmp_path / "batched")
+    assert_same_tree(reference_build[0], tmp_path / "batched")
     pytest.importorskip("distributed")
     report = build_dataset(small_capture, tmp_path / "batched_dask", options=opts, workers=1, processes=False)
     assert report.ok and sorted(report.built) == list(SAMPLES)
-    _assert_same_tree(reference_build[0], tmp_path / "batched_dask")
+    assert_same_tree(reference_build[0], tmp_path / "batched_dask")
 
     corrupt = _copy(small_capture, tmp_path, "corrupt")
     (corrupt / "frames/000001/cameras/RV/left/rgb_curr.png").write_bytes(b"\x89PNG not really")

@@ -24,6 +24,7 @@ from pathlib import Path
 import pytest
 
 from jaxfish.dataset import BuildInterrupted, build_dataset, is_complete
+from tests.helpers import assert_same_tree
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal: Linux only")
 
@@ -55,17 +56,6 @@ def _ended(pid: int) -> bool:
 def _listing(root: Path) -> dict[str, tuple[int, int]]:
     return {p.relative_to(root).as_posix(): (p.stat().st_size, p.stat().st_mtime_ns)
             for p in sorted(root.rglob("*")) if p.is_file()}
-
-
-def _tree(root: Path) -> dict[str, bytes]:
-    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
-
-
-def _assert_same_tree(a: Path, b: Path) -> None:
-    ta, tb = _tree(a), _tree(b)
-    assert sorted(ta) == sorted(tb)
-    differ = [k for k in ta if ta[k] != tb[k]]
-    assert not differ, f"files differ: {differ[:10]}"
 
 
 def _files_of(out: Path, sample: str) -> list[str]:
@@ -250,7 +240,7 @@ def test_ctrl_c_stops_a_dask_build_cleanly_and_it_resumes_to_the_same_bytes(four
 
     report = build_dataset(cap, out)
     assert report.ok and set(report.skipped) == set(complete) and "00001" in report.built
-    _assert_same_tree(reference, out)
+    assert_same_tree(reference, out)
 
 
 def test_kill_9_of_a_dask_build_ends_its_workers_and_it_resumes_to_the_same_bytes(four_frames, tmp_path):
@@ -270,7 +260,7 @@ def test_kill_9_of_a_dask_build_ends_its_workers_and_it_resumes_to_the_same_byte
     assert is_complete(out, "00000") and not is_complete(out, "00001")
     report = build_dataset(cap, out)
     assert report.ok and "00001" in report.built
-    _assert_same_tree(reference, out)
+    assert_same_tree(reference, out)
 
 
 # ------------------------------------------------------------------------------- in-process builds
@@ -319,7 +309,7 @@ def test_a_signal_stops_a_serial_cli_build_cleanly(small_capture, reference_buil
     monkeypatch.setattr(_build, "_sample_extras", original)
     report = build_dataset(small_capture, out)
     assert report.ok and report.skipped == ["00000"] and report.built == ["00001"]
-    _assert_same_tree(reference_build[0], out)
+    assert_same_tree(reference_build[0], out)
 
 
 def test_ctrl_c_stops_thread_workers_before_their_next_file(small_capture, reference_build, tmp_path, monkeypatch,
@@ -349,4 +339,4 @@ def test_ctrl_c_stops_thread_workers_before_their_next_file(small_capture, refer
     monkeypatch.setattr(_build, "_sample_extras", original)
     report = build_dataset(small_capture, out)
     assert report.ok
-    _assert_same_tree(reference_build[0], out)
+    assert_same_tree(reference_build[0], out)
