@@ -82,6 +82,7 @@ def _initial_camera(model: str, width: int, height: int, focal: float | None):
         "unified": [f, f, cx, cy, 0.5],
         "extended_unified": [f, f, cx, cy, 0.5, 1.0],
         "double_sphere": [f, f, cx, cy, 0.0, 0.5],
+        "pinhole": [f, f, cx, cy],
     }[model]
     return camera_from_intrinsics(model, np.asarray(vec), width=width, height=height, dtype=np.float64)
 

@@ -148,7 +148,16 @@ def load_calibration(path: str | os.PathLike, *, apply_errata: bool = False, dty
     Raises `FileNotFoundError` for a missing file and `CalibrationError` (a `ValueError`) naming
     the file and field for anything malformed, and naming the path when it is not a regular file
     (a directory, a FIFO, a symbolic link loop).
+
+    Another tool's calibration file (kalibr, COLMAP, OpenCV, basalt, CARLA: ``docs/interop.md``)
+    is read as `jaxfish.io.load_camera_calibration` reads it (its one camera, of any lens model).
     """
+    from ._formats import detect_calibration_format
+
+    if detect_calibration_format(path) != "jaxfish":
+        from ._correspondences import load_camera_calibration
+
+        return load_camera_calibration(path, dtype=dtype)
     path = regular_file(path, CalibrationError, "calibration file")
     data = read_json(path, CalibrationError)
     return calibration_from_dict(data, source=str(path), apply_errata=apply_errata, dtype=dtype)

@@ -210,10 +210,33 @@ def _numbers(value: Any, n: int) -> bool:
             and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in value))
 
 
-def load_camera_calibration(path: str | os.PathLike, *, dtype=None) -> Calibration:
-    """Read a calibration JSON of any lens model (WoodScape ``radial_poly`` files included)."""
+def load_camera_calibration(path: str | os.PathLike, *, dtype=None, camera: str | None = None) -> Calibration:
+    """Read a calibration of any lens model: jaxfish's calibration JSON (WoodScape ``radial_poly``
+    files included) or another tool's file (kalibr camchain YAML, COLMAP ``cameras.txt`` or its
+    folder, OpenCV FileStorage YAML, basalt JSON, CARLA sensor JSON: ``docs/interop.md``), told
+    apart by name and content. A file of several cameras needs ``camera`` (a name, or an index
+    such as ``"0"``) unless it holds one."""
+    from ._formats import detect_calibration_format, read_calibration_file
+
     path = Path(path)
-    return camera_calibration_from_dict(_read_json(path, CalibrationError), source=str(path), dtype=dtype)
+    fmt = detect_calibration_format(path)
+    if fmt == "jaxfish":
+        return camera_calibration_from_dict(_read_json(path, CalibrationError), source=str(path), dtype=dtype)
+    return select_camera(read_calibration_file(path, dtype=dtype, fmt=fmt), path, camera)
+
+
+def select_camera(calibs: list[Calibration], path: Path, camera: str | None) -> Calibration:
+    """One calibration of a file's cameras: by name, by index, or the only one."""
+    names = [c.name for c in calibs]
+    if camera is None:
+        if len(calibs) == 1:
+            return calibs[0]
+        raise CalibrationError(f"{path}: holds {len(calibs)} cameras ({', '.join(names)}); say which one")
+    if camera in names:
+        return calibs[names.index(camera)]
+    if camera.isdigit() and int(camera) < len(calibs):
+        return calibs[int(camera)]
+    raise CalibrationError(f"{path}: no camera {camera!r} (cameras: {', '.join(names)})")
 
 
 def camera_calibration_to_dict(calib: Calibration) -> dict[str, Any]:

@@ -128,6 +128,8 @@ def _initial_from(source: AbstractCamera, model: str, uv, valid, top: float, dty
         vec = [fx, fy, cx, cy, 0.5]
     elif model == "extended_unified":
         vec = [fx, fy, cx, cy, 0.5, 1.0]
+    elif model == "pinhole":
+        vec = [fx, fy, cx, cy]
     else:
         vec = [fx, fy, cx, cy, 0.0, 0.5]
     return camera_from_intrinsics(model, np.asarray(vec, dtype=np.float64), width=w, height=h, dtype=dtype)

@@ -13,6 +13,7 @@ from jaxtyping import Array, Float
 from ..cameras import MAX_IMAGE_SIDE, AbstractCamera, WoodScapeFisheye
 from ..cameras._double_sphere import DoubleSphere
 from ..cameras._kannala_brandt import KannalaBrandt
+from ..cameras._pinhole import Pinhole
 from ..cameras._unified import ExtendedUnifiedCamera, UnifiedCamera
 
 MODEL_CLASSES: dict[str, type[AbstractCamera]] = {
@@ -21,6 +22,7 @@ MODEL_CLASSES: dict[str, type[AbstractCamera]] = {
     "unified": UnifiedCamera,
     "extended_unified": ExtendedUnifiedCamera,
     "double_sphere": DoubleSphere,
+    "pinhole": Pinhole,
 }
 """Model names (the ``intrinsic.model`` value of a calibration JSON) and their camera classes."""
 
@@ -30,6 +32,7 @@ PARAMETER_NAMES: dict[str, tuple[str, ...]] = {
     "unified": ("fx", "fy", "cx", "cy", "alpha"),
     "extended_unified": ("fx", "fy", "cx", "cy", "alpha", "beta"),
     "double_sphere": ("fx", "fy", "cx", "cy", "xi", "alpha"),
+    "pinhole": ("fx", "fy", "cx", "cy"),
 }
 """Intrinsic parameter names of each model, in vector order (pixels for k of radial_poly,
 fx, fy, cx, cy, cx_offset, cy_offset; dimensionless otherwise)."""
@@ -109,6 +112,8 @@ def intrinsics_vector(camera: AbstractCamera) -> Float[Array, " P"]:
         parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy, c.alpha])]
     elif name == "extended_unified":
         parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy, c.alpha, c.beta])]
+    elif name == "pinhole":
+        parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy])]
     else:
         parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy, c.xi, c.alpha])]
     return jnp.concatenate(parts)
@@ -131,6 +136,8 @@ def with_intrinsics(camera: AbstractCamera, vector: Float[Array, " P"]) -> Abstr
     if name == "extended_unified":
         return eqx.tree_at(lambda c: (c.fx, c.fy, c.cx, c.cy, c.alpha, c.beta), camera,
                            tuple(vector[i] for i in range(6)))
+    if name == "pinhole":
+        return eqx.tree_at(lambda c: (c.fx, c.fy, c.cx, c.cy), camera, tuple(vector[i] for i in range(4)))
     return eqx.tree_at(lambda c: (c.fx, c.fy, c.cx, c.cy, c.xi, c.alpha), camera, tuple(vector[i] for i in range(6)))
 
 

@@ -1,0 +1,160 @@
+"""CARLA camera sensors: blueprint attributes and the mount transform, as JSON::
+
+    {"sensors": [{"name": "FV", "blueprint": "sensor.camera.rgb",
+                  "attributes": {"image_size_x": "1280", "image_size_y": "966", "fov": "90"},
+                  "transform": {"location": [x, y, z], "rotation": [pitch, yaw, roll]}}]}
+
+(a single sensor object at the root is read too). Attribute values are strings, as
+``blueprint.get_attribute(...)`` gives them, or numbers. ``transform`` is the sensor's
+``carla.Transform`` relative to the ego vehicle (Unreal: x forward, y right, z up, metres;
+degrees), converted to jaxfish's OpenCV camera -> ISO 8855 vehicle pose as
+`jaxfish.transforms.carla_camera_pose_to_opencv` does (the vehicle origin is the ego actor's).
+
+A plain ``sensor.camera.*`` is CARLA's pinhole (`jaxfish.Pinhole.from_fov`: focal length
+``W / (2 tan(fov/2))`` from the horizontal ``fov``, optical axis at the image centre); a sensor
+with the WideAngle lens attributes (``camera_model``, ``k0``..``k3``) is ``carla_wide_angle``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ...refit._parameters import MODEL_CLASSES, PARAMETER_NAMES
+from ._common import CameraRecord, fail, mapping, number, whole
+
+WIDE_ANGLE_ATTRIBUTES = ("camera_model", "k0", "k1", "k2", "k3")
+"""Blueprint attributes that make a camera CARLA's WideAngle lens (``carla_wide_angle``)."""
+_PINHOLE_TOLERANCE = 1e-9
+
+
+def _transform(value: Any, source: str, field: str) -> np.ndarray:
+    from ...transforms import Pose, carla_camera_pose_to_opencv
+    from ...transforms._pose import carla_rotation_matrix
+
+    t = mapping(value, source, field)
+    loc, rot = t.get("location"), t.get("rotation")
+    if loc is None:
+        raise fail(source, f"{field}.location", "missing")
+    if rot is None:
+        raise fail(source, f"{field}.rotation", "missing")
+    if isinstance(loc, dict):
+        loc = [loc.get(k) for k in ("x", "y", "z")]
+    if isinstance(rot, dict):
+        rot = [rot.get(k) for k in ("pitch", "yaw", "roll")]
+    if not isinstance(loc, list) or len(loc) != 3:
+        raise fail(source, f"{field}.location", f"expected [x, y, z] metres, got {loc!r}")
+    if not isinstance(rot, list) or len(rot) != 3:
+        raise fail(source, f"{field}.rotation", f"expected [pitch, yaw, roll] degrees, got {rot!r}")
+    xyz = [number(v, source, f"{field}.location[{i}]") for i, v in enumerate(loc)]
+    pyr = [number(v, source, f"{field}.rotation[{i}]") for i, v in enumerate(rot)]
+    unreal = Pose(np.asarray(carla_rotation_matrix(*pyr, dtype=np.float64), np.float64), np.asarray(xyz), dtype=np.float64)
+    return np.asarray(carla_camera_pose_to_opencv(unreal).as_matrix(), np.float64)
+
+
+def _sensor(s: Any, source: str, where: str, index: int) -> CameraRecord:
+    s = mapping(s, source, where)
+    bp = s.get("blueprint", "sensor.camera.rgb")
+    if not isinstance(bp, str) or not bp.startswith("sensor.camera."):
+        raise fail(source, f"{where}.blueprint", f"expected a camera blueprint (sensor.camera.*), got {bp!r}")
+    attrs = mapping(s.get("attributes", {}), source, f"{where}.attributes")
+    for key in ("image_size_x", "image_size_y"):
+        if key not in attrs:
+            raise fail(source, f"{where}.attributes.{key}", "missing")
+    w = whole(attrs["image_size_x"], source, f"{where}.attributes.image_size_x")
+    h = whole(attrs["image_size_y"], source, f"{where}.attributes.image_size_y")
+    fov = number(attrs.get("fov", 90.0), source, f"{where}.attributes.fov")
+    name = s.get("name", f"camera{index}")
+    if not isinstance(name, str) or not name:
+        raise fail(source, f"{where}.name", f"expected a non-empty string, got {name!r}")
+    pose = _transform(s["transform"], source, f"{where}.transform") if "transform" in s else np.eye(4)
+    lens = [k for k in WIDE_ANGLE_ATTRIBUTES if k in attrs]
+    if lens or "wide_angle" in bp.lower():
+        field = f"{where}.attributes.{lens[0]}" if lens else f"{where}.blueprint"
+        if "carla_wide_angle" not in MODEL_CLASSES:
+            raise fail(source, field, "CARLA's WideAngle lens is jaxfish's lens model 'carla_wide_angle', which this "
+                       "version of jaxfish does not have")
+        return CameraRecord(name, "carla_wide_angle", _wide_angle_params(attrs, w, h, source, f"{where}.attributes"),
+                            w, h, pose, where=where)
+    if not 0.0 < fov < 180.0:
+        raise fail(source, f"{where}.attributes.fov", f"a pinhole's horizontal fov must be in (0, 180) degrees, got {fov!r}")
+    f = w / (2.0 * math.tan(math.radians(fov) / 2.0))
+    return CameraRecord(name, "pinhole", {"fx": f, "fy": f, "cx": (w - 1) / 2.0, "cy": (h - 1) / 2.0}, w, h, pose,
+                        where=where)
+
+
+def _wide_angle_params(attrs, w, h, source, where) -> dict[str, float]:
+    """The carla_wide_angle parameters: every parameter name of the model read from the blueprint
+    attribute of the same name (the model's own module defines them and their defaults)."""
+    from ...refit._parameters import MODEL_CLASSES as classes
+
+    names = PARAMETER_NAMES["carla_wide_angle"]
+    cls = classes["carla_wide_angle"]
+    from_attributes = getattr(cls, "parameters_from_attributes", None)
+    if from_attributes is not None:
+        try:
+            return dict(from_attributes(attrs, width=w, height=h))
+        except ValueError as e:
+            raise fail(source, where, str(e)) from None
+    out = {}
+    for n in names:
+        if n not in attrs:
+            raise fail(source, f"{where}.{n}", "missing")
+        out[n] = number(attrs[n], source, f"{where}.{n}")
+    return out
+
+
+def read(data: Any, source: str) -> list[CameraRecord]:
+    """The cameras of a parsed CARLA sensors JSON."""
+    data = mapping(data, source, "<root>")
+    if "sensors" in data:
+        sensors = data["sensors"]
+        if not isinstance(sensors, list) or not sensors:
+            raise fail(source, "sensors", "expected a non-empty list of sensors")
+        return [_sensor(s, source, f"sensors[{i}]", i) for i, s in enumerate(sensors)]
+    return [_sensor(data, source, "<root>", 0)]
+
+
+def pinhole_fov(record: CameraRecord) -> float | None:
+    """The horizontal fov (degrees) of a pinhole CARLA renders exactly (square pixels, axis at the
+    image centre), or None."""
+    p = record.params
+    if record.model != "pinhole":
+        return None
+    if p["fx"] != p["fy"] or abs(p["cx"] - (record.width - 1) / 2) > _PINHOLE_TOLERANCE \
+            or abs(p["cy"] - (record.height - 1) / 2) > _PINHOLE_TOLERANCE:
+        return None
+    return math.degrees(2.0 * math.atan(record.width / (2.0 * p["fx"])))
+
+
+def writable(record: CameraRecord) -> bool:
+    """Whether CARLA renders this camera exactly."""
+    return pinhole_fov(record) is not None or record.model == "carla_wide_angle"
+
+
+def write(records: Sequence[CameraRecord]) -> dict[str, Any]:
+    """The CARLA sensors object of cameras CARLA renders exactly (`writable`)."""
+    from ...transforms import Pose, opencv_camera_pose_to_carla
+    from .._carla_capture import carla_angles_from_matrix
+
+    sensors = []
+    for r in records:
+        attrs: dict[str, str] = {"image_size_x": str(r.width), "image_size_y": str(r.height)}
+        fov = pinhole_fov(r)
+        if fov is not None:
+            attrs["fov"] = repr(fov)
+        else:
+            cls = MODEL_CLASSES["carla_wide_angle"]
+            to_attributes = getattr(cls, "attributes_from_parameters", None)
+            vals = dict(to_attributes(r.params, width=r.width, height=r.height)) if to_attributes else r.params
+            attrs.update({k: (v if isinstance(v, str) else repr(float(v))) for k, v in vals.items()})
+        m = r.camera_to_vehicle
+        unreal = opencv_camera_pose_to_carla(Pose(m[:3, :3], m[:3, 3], dtype=np.float64))
+        loc = [float(x) + 0.0 for x in np.asarray(unreal.translation)]
+        rot = [float(x) + 0.0 for x in carla_angles_from_matrix(np.asarray(unreal.rotation_matrix))]
+        sensors.append({"name": r.name, "blueprint": "sensor.camera.rgb", "attributes": attrs,
+                        "transform": {"location": loc, "rotation": rot}})
+    return {"sensors": sensors}
