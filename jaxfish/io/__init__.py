@@ -145,3 +145,9 @@ from ._lut_cache import cached_lut as cached_lut
 from ._lut_cache import load_lut as load_lut
 from ._lut_cache import lut_cache_key as lut_cache_key
 from ._lut_cache import save_lut as save_lut
+from ._rig_correspondences import RIG_FRAMES as RIG_FRAMES
+from ._rig_correspondences import RigCorrespondences as RigCorrespondences
+from ._rig_correspondences import load_rig_correspondences as load_rig_correspondences
+from ._rig_correspondences import rig_correspondences_from_dict as rig_correspondences_from_dict
+from ._rig_correspondences import rig_correspondences_to_dict as rig_correspondences_to_dict
+from ._rig_correspondences import save_rig_correspondences as save_rig_correspondences

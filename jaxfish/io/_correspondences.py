@@ -100,6 +100,9 @@ def correspondences_from_dict(data: Any, *, source: str = "<correspondences>", d
         if not isinstance(view, dict):
             raise CorrespondenceError(f"{source}: field '{where}': expected an object")
         extra = sorted(set(view) - {"name", "points", "pixels", "weights"})
+        if extra == ["camera"]:
+            raise CorrespondenceError(f"{source}: field '{where}.camera': views that name cameras are a rig's "
+                                      "correspondences (jaxfish refit --rig, jaxfish.io.load_rig_correspondences)")
         if extra:
             raise CorrespondenceError(f"{source}: field '{where}.{extra[0]}': unexpected key")
         for key in ("points", "pixels"):

@@ -211,3 +211,15 @@ def _write(path: Path, text: str) -> Path:
     return path
 
 
+
+
+def format_free_parameters(fmt: str, model: str) -> tuple[str, ...] | None:
+    """The parameters of jaxfish ``model`` that format ``fmt`` can hold (the others must be 0), or
+    None when the format does not hold the model."""
+    if fmt == "carla":
+        return PARAMETER_NAMES[model] if model in format_models("carla") else None
+    rows = [m for m in MODEL_TABLES[fmt] if m.model == model and m.available]
+    if not rows:
+        return None
+    used = {n for m in rows for spec in (m.params if m.encode is None else PARAMETER_NAMES[model]) for n in spec.split("|")}
+    return tuple(n for n in PARAMETER_NAMES[model] if n in used)
