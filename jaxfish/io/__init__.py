@@ -110,6 +110,15 @@ from ._flow import read_kitti_flow as read_kitti_flow
 from ._flow import write_flo as write_flo
 from ._flow import write_flow_color as write_flow_color
 from ._flow import write_kitti_flow as write_kitti_flow
+from ._formats import CALIBRATION_FORMATS as CALIBRATION_FORMATS
+from ._formats import EXPORT_FORMATS as EXPORT_FORMATS
+from ._formats import MODEL_TABLES as MODEL_TABLES
+from ._formats import ModelMapping as ModelMapping
+from ._formats import detect_calibration_format as detect_calibration_format
+from ._formats import export_calibrations as export_calibrations
+from ._formats import format_models as format_models
+from ._formats import holds_exactly as holds_exactly
+from ._formats import read_calibration_file as read_calibration_file
 from ._images import read_image as read_image
 from ._images import read_image_metadata as read_image_metadata
 from ._images import write_image as write_image
