@@ -54,6 +54,7 @@ def export(
 
     from ..calibration import Calibration
     from ..io._formats import (
+        check_export_names,
         export_calibrations,
         format_free_parameters,
         format_models,
@@ -78,6 +79,7 @@ def export(
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise fail(f"two cameras are named {dup[0]!r}: camera names must differ within one export")
+    check_export_names(names, fmt, out)
     written: list[Calibration] = []
     rows = []
     refused = []

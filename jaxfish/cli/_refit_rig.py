@@ -38,6 +38,7 @@ def refit_rig_command(correspondences: Path, rig_files: list[Path], out: Path, r
         load_rig_correspondences,
     )
     from ..io._formats import read_calibration_file
+    from ..io._formats._common import file_stem
     from ..io._json import to_json_text
     from ..refit import canonical_model_name, intrinsics_vector, parameter_names, refit_rig
     from ..transforms import Pose
@@ -46,6 +47,8 @@ def refit_rig_command(correspondences: Path, rig_files: list[Path], out: Path, r
     for path in rig_files:
         calibs.extend(read_calibration_file(path, dtype=np.float64))
     names = [c.name for c in calibs]
+    for n in names:
+        file_stem(n, f"--out {out}")
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise fail(f"--rig: two cameras are named {dup[0]!r}; camera names must differ")

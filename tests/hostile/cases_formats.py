@@ -33,6 +33,15 @@ def _rig_corr(tmp: Path, views=None) -> None:
     (tmp / "rig.yaml").write_text(_KALIBR)
 
 
+def _named_calibration(tmp: Path, name: str) -> None:
+    """A Kannala-Brandt calibration JSON named ``name``, and a second one so that OpenCV writes a folder."""
+    intr = {"model": "kannala_brandt", "width": 1280.0, "height": 966.0, "fx": 330.0, "fy": 330.0, "cx": 640.0,
+            "cy": 480.0, "k1": 0.02, "k2": 0.0, "k3": 0.0, "k4": 0.0}
+    ext = {"quaternion": [0.0, 0.0, 0.0, 1.0], "translation": [0.0, 0.0, 0.0]}
+    (tmp / "c.json").write_text(json.dumps({"name": name, "intrinsic": intr, "extrinsic": ext}))
+    (tmp / "c2.json").write_text(json.dumps({"name": "other", "intrinsic": intr, "extrinsic": ext}))
+
+
 CASES = [
     # Reading: every format's broken file names the file and field.
     Case("formats-kalibr-malformed-yaml", "convert {tmp}/c.yaml --to kb --out {tmp}/o.json",
@@ -113,7 +122,19 @@ CASES = [
     Case("formats-carla-not-a-camera", "convert {tmp}/s.json --to kb --out {tmp}/o.json",
          setup=_write("s.json", json.dumps({"blueprint": "sensor.lidar.ray_cast", "attributes": {}})),
          says=("field '<root>.blueprint'", "sensor.camera")),
+    Case("formats-yaml-nested-deeply", "convert {tmp}/c.yaml --to kb --out {tmp}/o.json",
+         setup=_write("c.yaml", "cam0: " + "[" * 100000 + "]" * 100000 + "\n"), says=("c.yaml", "YAML")),
+    Case("formats-yaml-alias-bomb", "convert {tmp}/c.yaml --to kb --out {tmp}/o.json",
+         setup=_write("c.yaml", "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+             f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, "
+             f"*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}]\n" for i in range(8))
+             + "K: *i\n"), says=("c.yaml: field 'K[0][0]': expected a number, got list [[[...]",)),
     # jaxfish export
+    Case("formats-export-name-escapes-folder", "export {tmp}/c.json {tmp}/c2.json --format opencv --out {tmp}/ocv",
+         setup=lambda t: _named_calibration(t, "../escaped"), says=("camera name '../escaped'",),
+         absent=("{tmp}/escaped.yaml", "{tmp}/ocv")),
+    Case("formats-export-colmap-name-with-space", "export {tmp}/c.json --format colmap --out {tmp}/sp",
+         setup=lambda t: _named_calibration(t, "front cam"), says=("camera name 'front cam'",), absent=("{tmp}/sp",)),
     Case("formats-export-unknown-format", "export {calib} --format ros --out {tmp}/o.yaml", says=("--format", "ros"),
          absent=("{tmp}/o.yaml",)),
     Case("formats-export-to-model-the-format-lacks", "export {calib} --format colmap --to ds --out {tmp}/o",

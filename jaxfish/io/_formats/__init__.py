@@ -23,7 +23,7 @@ from ...refit._parameters import PARAMETER_NAMES, canonical_model_name, intrinsi
 from .._atomic import atomic_write_text
 from .._json import read_json, regular_file, to_json_text
 from . import _basalt, _carla, _colmap, _kalibr, _opencv
-from ._common import CameraRecord, ModelMapping, writable_models
+from ._common import CameraRecord, ModelMapping, file_stem, short, writable_models
 
 CALIBRATION_FORMATS: tuple[str, ...] = ("jaxfish", "kalibr", "colmap", "opencv", "basalt", "carla")
 """Calibration file formats jaxfish reads (``jaxfish`` is its own calibration JSON)."""
@@ -151,7 +151,7 @@ def _read_records(path: Path, fmt: str) -> list[CameraRecord]:
         if fmt == "kalibr":
             return _kalibr.read(data, str(path))
         return _opencv.read(data, str(path), path.stem)
-    raise ValueError(f"unknown calibration format {fmt!r} (known: {', '.join(CALIBRATION_FORMATS)})")
+    raise ValueError(f"unknown calibration format {short(fmt)} (known: {', '.join(CALIBRATION_FORMATS)})")
 
 
 def record_of(calib: Calibration) -> CameraRecord:
@@ -180,10 +180,11 @@ def export_calibrations(calibs: Sequence[Calibration], fmt: str, out: str | os.P
     ``cameras.txt``, ``images.txt`` and an empty ``points3D.txt``; OpenCV: ``NAME.yaml`` per
     camera when there are several). Returns the paths written."""
     out = Path(out)
+    check_export_names([c.name for c in calibs], fmt, out)
     records = [record_of(c) for c in calibs]
     for c in calibs:
         if not holds_exactly(fmt, c):
-            raise ValueError(f"export: {fmt} cannot hold camera {c.name!r} ({canonical_model_name(c.camera)}) exactly; "
+            raise ValueError(f"export: {fmt} cannot hold camera {short(c.name)} ({canonical_model_name(c.camera)}) exactly; "
                              "convert it first")
     if fmt == "kalibr":
         import yaml
@@ -203,7 +204,19 @@ def export_calibrations(calibs: Sequence[Calibration], fmt: str, out: str | os.P
             return [_write(out, _opencv.write(records[0]))]
         out.mkdir(parents=True, exist_ok=True)
         return [_write(out / f"{r.name}.yaml", _opencv.write(r)) for r in records]
-    raise ValueError(f"unknown export format {fmt!r} (known: {', '.join(EXPORT_FORMATS)})")
+    raise ValueError(f"unknown export format {short(fmt)} (known: {', '.join(EXPORT_FORMATS)})")
+
+
+def check_export_names(names: Sequence[str], fmt: str, out: str | os.PathLike) -> None:
+    """Refuse camera names a format cannot carry (`CalibrationError`): a COLMAP image name
+    ``NAME.png`` with white space or ``/``, an OpenCV ``NAME.yaml`` of several cameras that would
+    leave the folder (``/``, ``..``)."""
+    for name in names:
+        if fmt == "colmap" and (not name or any(ch.isspace() for ch in name) or "/" in name):
+            raise CalibrationError(f"export to {out}: camera name {short(name)} cannot be a COLMAP image name "
+                                   "(NAME.png: no spaces, line breaks or '/')")
+        if fmt == "opencv" and len(names) > 1:
+            file_stem(name, f"export to {out}")
 
 
 def _write(path: Path, text: str) -> Path:

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from ._common import CameraRecord, ModelMapping, fail, find_reader, find_writer, mapping, number, require, whole
+from ._common import CameraRecord, ModelMapping, fail, find_reader, find_writer, mapping, number, require, short, whole
 
 _P = ("fx", "fy", "cx", "cy")
 BASALT_MODELS: tuple[ModelMapping, ...] = (
@@ -52,7 +52,7 @@ def read(data: Any, source: str) -> list[CameraRecord]:
         m = find_reader(BASALT_MODELS, ctype)
         if m is None:
             raise fail(source, f"{where}.camera_type", f"expected one of {', '.join(r.tool for r in BASALT_MODELS)}, "
-                       f"got {ctype!r}")
+                       f"got {short(ctype)}")
         vals = mapping(require(cam, "intrinsics", source, where), source, f"{where}.intrinsics")
         allowed = set(m.params) | ({"rpmax"} if ctype == "pinhole-radtan8" else set())
         extra = sorted(set(vals) - allowed)
@@ -63,7 +63,7 @@ def read(data: Any, source: str) -> list[CameraRecord]:
         params = m.read(values, source, f"{where}.camera_type")
         r = res[i]
         if not isinstance(r, list) or len(r) != 2:
-            raise fail(source, f"value0.resolution[{i}]", f"expected [width, height], got {r!r}")
+            raise fail(source, f"value0.resolution[{i}]", f"expected [width, height], got {short(r)}")
         w, h = (whole(x, source, f"value0.resolution[{i}][{j}]") for j, x in enumerate(r))
         pw = f"value0.T_imu_cam[{i}]"
         p = mapping(poses[i], source, pw)

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from ...refit._parameters import MODEL_CLASSES, PARAMETER_NAMES
-from ._common import CameraRecord, fail, mapping, number, whole
+from ._common import CameraRecord, fail, mapping, number, short, whole
 
 WIDE_ANGLE_ATTRIBUTES = ("camera_model", "k0", "k1", "k2", "k3")
 """Blueprint attributes that make a camera CARLA's WideAngle lens (``carla_wide_angle``)."""
@@ -46,9 +46,9 @@ def _transform(value: Any, source: str, field: str) -> np.ndarray:
     if isinstance(rot, dict):
         rot = [rot.get(k) for k in ("pitch", "yaw", "roll")]
     if not isinstance(loc, list) or len(loc) != 3:
-        raise fail(source, f"{field}.location", f"expected [x, y, z] metres, got {loc!r}")
+        raise fail(source, f"{field}.location", f"expected [x, y, z] metres, got {short(loc)}")
     if not isinstance(rot, list) or len(rot) != 3:
-        raise fail(source, f"{field}.rotation", f"expected [pitch, yaw, roll] degrees, got {rot!r}")
+        raise fail(source, f"{field}.rotation", f"expected [pitch, yaw, roll] degrees, got {short(rot)}")
     xyz = [number(v, source, f"{field}.location[{i}]") for i, v in enumerate(loc)]
     pyr = [number(v, source, f"{field}.rotation[{i}]") for i, v in enumerate(rot)]
     unreal = Pose(np.asarray(carla_rotation_matrix(*pyr, dtype=np.float64), np.float64), np.asarray(xyz), dtype=np.float64)
@@ -59,7 +59,7 @@ def _sensor(s: Any, source: str, where: str, index: int) -> CameraRecord:
     s = mapping(s, source, where)
     bp = s.get("blueprint", "sensor.camera.rgb")
     if not isinstance(bp, str) or not bp.startswith("sensor.camera."):
-        raise fail(source, f"{where}.blueprint", f"expected a camera blueprint (sensor.camera.*), got {bp!r}")
+        raise fail(source, f"{where}.blueprint", f"expected a camera blueprint (sensor.camera.*), got {short(bp)}")
     attrs = mapping(s.get("attributes", {}), source, f"{where}.attributes")
     for key in ("image_size_x", "image_size_y"):
         if key not in attrs:
@@ -69,7 +69,7 @@ def _sensor(s: Any, source: str, where: str, index: int) -> CameraRecord:
     fov = number(attrs.get("fov", 90.0), source, f"{where}.attributes.fov")
     name = s.get("name", f"camera{index}")
     if not isinstance(name, str) or not name:
-        raise fail(source, f"{where}.name", f"expected a non-empty string, got {name!r}")
+        raise fail(source, f"{where}.name", f"expected a non-empty string, got {short(name)}")
     pose = _transform(s["transform"], source, f"{where}.transform") if "transform" in s else np.eye(4)
     lens = [k for k in WIDE_ANGLE_ATTRIBUTES if k in attrs]
     if lens or "wide_angle" in bp.lower():
@@ -80,7 +80,7 @@ def _sensor(s: Any, source: str, where: str, index: int) -> CameraRecord:
         return CameraRecord(name, "carla_wide_angle", _wide_angle_params(attrs, w, h, source, f"{where}.attributes"),
                             w, h, pose, where=where)
     if not 0.0 < fov < 180.0:
-        raise fail(source, f"{where}.attributes.fov", f"a pinhole's horizontal fov must be in (0, 180) degrees, got {fov!r}")
+        raise fail(source, f"{where}.attributes.fov", f"a pinhole's horizontal fov must be in (0, 180) degrees, got {short(fov)}")
     f = w / (2.0 * math.tan(math.radians(fov) / 2.0))
     return CameraRecord(name, "pinhole", {"fx": f, "fy": f, "cx": (w - 1) / 2.0, "cy": (h - 1) / 2.0}, w, h, pose,
                         where=where)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import CameraRecord, ModelMapping, fail, find_reader, find_writer, number
+from ._common import CameraRecord, ModelMapping, fail, find_reader, find_writer, number, short
 
 _P = ("fx", "fy", "cx", "cy")
 COLMAP_MODELS: tuple[ModelMapping, ...] = (
@@ -53,21 +53,21 @@ def read(cameras_txt: Path, images_txt: Path | None) -> list[CameraRecord]:
         parts = line.split()
         where = f"line {lineno}"
         if len(parts) < 4:
-            raise fail(source, where, f"expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got {line!r}")
+            raise fail(source, where, f"expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got {short(line)}")
         try:
             cam_id = int(parts[0])
         except ValueError:
-            raise fail(source, f"{where}.CAMERA_ID", f"expected an integer, got {parts[0]!r}") from None
+            raise fail(source, f"{where}.CAMERA_ID", f"expected an integer, got {short(parts[0])}") from None
         if cam_id in cams:
             raise fail(source, f"{where}.CAMERA_ID", f"camera {cam_id} is listed twice")
         m = find_reader(COLMAP_MODELS, parts[1])
         if m is None:
             known = ", ".join(dict.fromkeys(r.tool for r in COLMAP_MODELS))
-            raise fail(source, f"{where}.MODEL", f"COLMAP model {parts[1]!r} is not one jaxfish reads (known: {known})")
+            raise fail(source, f"{where}.MODEL", f"COLMAP model {short(parts[1])} is not one jaxfish reads (known: {known})")
         w, h = (number(parts[2 + j], source, f"{where}.{k}") for j, k in enumerate(("WIDTH", "HEIGHT")))
         for v, k in ((w, "WIDTH"), (h, "HEIGHT")):
             if v <= 0 or v != int(v):
-                raise fail(source, f"{where}.{k}", f"expected a positive whole number, got {v!r}")
+                raise fail(source, f"{where}.{k}", f"expected a positive whole number, got {short(v)}")
         vals = [number(x, source, f"{where}.PARAMS[{j}]") for j, x in enumerate(parts[4:])]
         params = m.read(vals, source, f"{where}.MODEL")
         params["cx"] -= _PIXEL_ORIGIN
@@ -103,7 +103,7 @@ def _read_images(path: Path, cams: dict[int, CameraRecord]) -> None:
         try:
             cam_id = int(parts[8])
         except ValueError:
-            raise fail(source, f"{where}.CAMERA_ID", f"expected an integer, got {parts[8]!r}") from None
+            raise fail(source, f"{where}.CAMERA_ID", f"expected an integer, got {short(parts[8])}") from None
         if cam_id not in cams:
             raise fail(source, f"{where}.CAMERA_ID", f"camera {cam_id} is not in cameras.txt")
         qn = float(np.linalg.norm(q))

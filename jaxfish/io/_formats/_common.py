@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import reprlib
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -13,6 +14,15 @@ import numpy as np
 
 from ..._errors import CalibrationError
 from ...refit._parameters import MODEL_CLASSES, PARAMETER_NAMES
+
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxlist, _REPR.maxdict, _REPR.maxstring, _REPR.maxother = 2, 6, 4, 60, 60
+
+
+def short(value: Any) -> str:
+    """A bounded ``repr`` for messages: a hostile file's value may be huge (YAML aliases nest a
+    small text into billions of items); reprlib never walks more than a few of them."""
+    return _REPR.repr(value)
 
 
 def fail(source: str, field: str, message: str) -> CalibrationError:
@@ -26,15 +36,15 @@ def number(value: Any, source: str, field: str) -> float:
         try:
             value = float(value)
         except ValueError:
-            raise fail(source, field, f"expected a number, got {value!r}") from None
+            raise fail(source, field, f"expected a number, got {short(value)}") from None
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise fail(source, field, f"expected a number, got {type(value).__name__} {value!r}")
+        raise fail(source, field, f"expected a number, got {type(value).__name__} {short(value)}")
     try:
         out = float(value)
     except OverflowError:
         out = math.inf
     if not math.isfinite(out):
-        raise fail(source, field, f"expected a finite number, got {value!r}" if isinstance(value, float)
+        raise fail(source, field, f"expected a finite number, got {short(value)}" if isinstance(value, float)
                    else "expected a finite number")
     return out
 
@@ -55,7 +65,7 @@ def whole(value: Any, source: str, field: str) -> int:
     """A positive whole number (image sides)."""
     x = number(value, source, field)
     if x <= 0 or x != int(x):
-        raise fail(source, field, f"expected a positive whole number, got {value!r}")
+        raise fail(source, field, f"expected a positive whole number, got {short(value)}")
     return int(x)
 
 
@@ -101,7 +111,7 @@ class ModelMapping:
     def read(self, values: Sequence[float], source: str, field: str) -> dict[str, float]:
         """The jaxfish parameters (every name of the model) from the tool's values."""
         if not self.available:
-            raise fail(source, field, f"{_tool_name(self.tool)} is jaxfish's lens model {self.model!r}, which this "
+            raise fail(source, field, f"{_tool_name(self.tool)} is jaxfish's lens model {short(self.model)}, which this "
                        f"version of jaxfish does not have (models: {', '.join(sorted(MODEL_CLASSES))})")
         if len(values) != len(self.params):
             raise fail(source, field, f"{_tool_name(self.tool)} has {len(self.params)} parameters "
@@ -243,3 +253,12 @@ def rodrigues(omega: np.ndarray) -> np.ndarray:
     if theta < 1e-12:
         return np.eye(3) + k
     return np.eye(3) + math.sin(theta) / theta * k + (1 - math.cos(theta)) / theta**2 * (k @ k)
+
+
+def file_stem(name: str, what: str) -> str:
+    """A camera name used as a file name (``NAME.yaml``, ``NAME.json``): refused when it holds a
+    path separator, NUL or a line break, or is ``.`` / ``..`` (it would write outside the folder)."""
+    if not name or name in (".", "..") or any(ch in name for ch in "/\\\0\n\r"):
+        raise CalibrationError(f"{what}: camera name {short(name)} cannot be a file name (no '/', '\\', NUL, line breaks, "
+                               "'.' or '..')")
+    return name

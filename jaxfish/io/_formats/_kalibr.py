@@ -31,6 +31,7 @@ from ._common import (
     numbers,
     require,
     rigid_matrix,
+    short,
     whole,
 )
 
@@ -81,7 +82,7 @@ def read(data: Any, source: str) -> list[CameraRecord]:
         cam = mapping(data[key], source, key)
         model = require(cam, "camera_model", source, key)
         if model not in _N_INTRINSICS:
-            raise fail(source, f"{key}.camera_model", f"expected one of {', '.join(_N_INTRINSICS)}, got {model!r}")
+            raise fail(source, f"{key}.camera_model", f"expected one of {', '.join(_N_INTRINSICS)}, got {short(model)}")
         dist = cam.get("distortion_model", "none")
         dist = "none" if dist is None else dist
         n = _N_INTRINSICS[model]
@@ -92,7 +93,7 @@ def read(data: Any, source: str) -> list[CameraRecord]:
         tool = (model, dist)
         m = find_reader(KALIBR_MODELS, tool)
         if m is None:
-            raise fail(source, f"{key}.distortion_model", f"{model} with distortion {dist!r} is not a kalibr model "
+            raise fail(source, f"{key}.distortion_model", f"{model} with distortion {short(dist)} is not a kalibr model "
                        "jaxfish reads (pinhole: radtan, equidistant, fov, none; omni: radtan, none; ds, eucm: none)")
         want = len(m.params) - n
         if dist == "none":
@@ -102,7 +103,7 @@ def read(data: Any, source: str) -> list[CameraRecord]:
         params = m.read(intr + coeffs, source, f"{key}.camera_model")
         res = require(cam, "resolution", source, key)
         if not isinstance(res, (list, tuple)) or len(res) != 2:
-            raise fail(source, f"{key}.resolution", f"expected [width, height], got {res!r}")
+            raise fail(source, f"{key}.resolution", f"expected [width, height], got {short(res)}")
         w, h = (whole(v, source, f"{key}.resolution[{j}]") for j, v in enumerate(res))
         if i == 0:
             chain.append(np.eye(4))

@@ -15,12 +15,23 @@ p1, p2) and refused. One camera per file: a rig is written as one ``NAME.yaml`` 
 
 from __future__ import annotations
 
-import re
+import json
 from typing import Any
 
 import numpy as np
 
-from ._common import CameraRecord, ModelMapping, fail, find_reader, find_writer, number, numbers, rodrigues, whole
+from ._common import (
+    CameraRecord,
+    ModelMapping,
+    fail,
+    find_reader,
+    find_writer,
+    number,
+    numbers,
+    rodrigues,
+    short,
+    whole,
+)
 
 _P = ("fx", "fy", "cx", "cy")
 _OPENCV_D = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
@@ -87,7 +98,7 @@ def read(data: Any, source: str, name: str) -> list[CameraRecord]:
         tool = "omnidir"
     elif dm is not None:
         if not isinstance(dm, str) or dm.lower() not in _DISTORTION_MODELS:
-            raise fail(source, "distortion_model", f"expected one of {', '.join(_DISTORTION_MODELS)}, got {dm!r}")
+            raise fail(source, "distortion_model", f"expected one of {', '.join(_DISTORTION_MODELS)}, got {short(dm)}")
         tool = _DISTORTION_MODELS[dm.lower()]
     elif len(d) == 4:
         raise fail(source, "distortion_model", f"missing: {d_key} has 4 coefficients, which are cv2.fisheye's "
@@ -111,7 +122,7 @@ def read(data: Any, source: str, name: str) -> list[CameraRecord]:
             raise fail(source, d_key or "D", f"cv2 takes 4, 5, 8, 12 or 14 coefficients, got {len(d)}")
         if len(d) == 14:
             if d[12] != 0 or d[13] != 0:
-                raise fail(source, d_key or "D", f"tilted sensor (tauX, tauY) = ({d[12]!r}, {d[13]!r}): jaxfish's opencv "
+                raise fail(source, d_key or "D", f"tilted sensor (tauX, tauY) = ({short(d[12])}, {short(d[13])}): jaxfish's opencv "
                            "model has none (only 0 is read)")
             d = d[:12]
         values += d.tolist() + [0.0] * (12 - len(d))
@@ -159,7 +170,7 @@ def read(data: Any, source: str, name: str) -> list[CameraRecord]:
         pose = np.linalg.inv(v2c)
     cam_name = data.get("camera_name", name)
     if not isinstance(cam_name, str) or not cam_name:
-        raise fail(source, "camera_name", f"expected a non-empty string, got {cam_name!r}")
+        raise fail(source, "camera_name", f"expected a non-empty string, got {short(cam_name)}")
     return [CameraRecord(cam_name, m.model, params, w, h, pose, where="<root>")]
 
 
@@ -197,7 +208,8 @@ def _num(v: float) -> str:
 
 
 def _quote(s: str) -> str:
-    return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"' if not re.fullmatch(r"[A-Za-z0-9_.-]+", s) else s
+    """A YAML double-quoted string (always quoted: ``yes`` or ``123`` unquoted are not strings)."""
+    return json.dumps(s)
 
 
 def _mat(name: str, rows: int, cols: int, data) -> list[str]:
