@@ -177,6 +177,9 @@ def refit(
                                    "correspondences name a camera per view; --out is a folder (NAME.json per camera)."),
     reference: str | None = typer.Option(None, "--reference", help="Rig mode: the camera whose mounting is held "
                                          "(the gauge; default: the first camera, none with frame vehicle)."),
+    estimate_mountings: bool = typer.Option(False, "--estimate-mountings", help="Rig mode: start every other "
+                                            "camera's mounting from the target views it shares with placed cameras "
+                                            "(kalibr's initialisation) instead of the --rig files' extrinsics."),
 ) -> None:
     """Fit a lens model's intrinsics (and poses) to 2D-3D correspondences; write the calibration and a report.
 
@@ -184,13 +187,13 @@ def refit(
     that file; without it, give --model, --width and --height (and optionally --focal, --name).
     With --rig, every camera's intrinsics and mounting and the target poses are fitted jointly.
     """
-    if rig or reference is not None:
+    if rig or reference is not None or estimate_mountings:
         from ._refit_rig import refit_rig_command
 
         others = {"--calibration": calibration is not None, "--model": model is not None, "--width": width is not None,
                   "--height": height is not None, "--focal": focal is not None}
         refit_rig_command(correspondences, rig, out, report, reference, fix, loss, loss_scale, fit_pose,
-                          [k for k, v in others.items() if v])
+                          [k for k, v in others.items() if v], estimate_mountings)
         return
     check_outputs(out=out, report=report)
     model = _model_option(model)

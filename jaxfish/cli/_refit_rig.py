@@ -12,11 +12,11 @@ from ._app import fail, print_warning, say
 
 def refit_rig_command(correspondences: Path, rig_files: list[Path], out: Path, report: Path | None,
                       reference: str | None, fix: list[str], loss: str, loss_scale: float, fit_pose: bool,
-                      single_options: list[str]) -> None:
+                      single_options: list[str], estimate_mountings: bool = False) -> None:
     """Read the rig and its correspondences, fit, and write ``out/NAME.json`` per camera (jaxfish's
     calibration JSON) and the report: all of them or nothing."""
     if not rig_files:
-        raise fail("--reference needs --rig (the rig's calibration files)")
+        raise fail("--reference and --estimate-mountings need --rig (the rig's calibration files)")
     if single_options:
         raise fail(f"{', '.join(single_options)}: not used with --rig (the models, sizes and start values come from "
                    "the --rig files)")
@@ -68,7 +68,7 @@ def refit_rig_command(correspondences: Path, rig_files: list[Path], out: Path, r
         targets = Pose(eye, np.zeros((n_targets, 3)), dtype=np.float64)
     try:
         result = refit_rig(calibs, data.observations, target_poses=targets, fit_targets=fit_pose and not vehicle,
-                           reference=ref, fixed=fix, target_names=data.target_names, loss=loss,
+                           reference=ref, estimate_mountings=estimate_mountings and ref is not None, fixed=fix, target_names=data.target_names, loss=loss,
                            loss_scale_px=loss_scale)
     except ValueError as e:
         raise fail(f"{correspondences}: {e}") from None

@@ -190,6 +190,59 @@ def _initial_target_poses(cameras, mounts_r, mounts_t, corrs, n_targets, dtype):
     return jnp.asarray(np.stack(rots), dtype), jnp.asarray(np.stack(ts), dtype)
 
 
+def _view_poses(cam, corr, n_targets, dtype) -> dict[int, np.ndarray]:
+    """``{view: 4x4 target -> camera}`` for the views a camera sees with 4+ valid rays (linear)."""
+    used = np.asarray(corr.weight) > 0
+    if not used.any():
+        return {}
+    rays, ok = jit_unproject(cam, corr.pixels)
+    rays, ok = np.asarray(rays), np.asarray(ok) & used
+    view, pts = np.asarray(corr.view), np.asarray(corr.points)
+    out = {}
+    for v in range(n_targets):
+        m = (view == v) & ok
+        if m.sum() < 4:
+            continue
+        try:
+            pose = _pose_from_rays(pts[m], rays[m], np.ones(int(m.sum()), bool), dtype)
+        except ValueError:
+            continue
+        t = np.eye(4)
+        t[:3, :3], t[:3, 3] = np.asarray(pose.rotation_matrix, np.float64), np.asarray(pose.translation, np.float64)
+        out[v] = t
+    return out
+
+
+def _estimate_mountings(cams, mounts_r, mounts_t, corrs, n_targets, ref, dtype):
+    """Mountings from shared target views, as kalibr initialises a rig: starting from the
+    reference camera, a camera that shares views with an already placed one is placed at the
+    average over those views of ``target -> vehicle`` (through the placed camera) composed with
+    ``camera -> target`` (its own linear pose)."""
+    poses = [_view_poses(c, o, n_targets, dtype) for c, o in zip(cams, corrs, strict=True)]
+    placed = {ref: np.block([[np.asarray(mounts_r[ref], np.float64), np.asarray(mounts_t[ref], np.float64)[:, None]],
+                             [np.zeros((1, 3)), np.ones((1, 1))]])}
+    while True:
+        grown = False
+        for c in range(len(cams)):
+            if c in placed:
+                continue
+            guesses = [placed[k] @ poses[k][v] @ np.linalg.inv(poses[c][v])
+                       for k in placed for v in poses[c] if v in poses[k]]
+            if not guesses:
+                continue
+            u, _, vt = np.linalg.svd(sum(g[:3, :3] for g in guesses))
+            m = np.eye(4)
+            m[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+            m[:3, 3] = np.mean([g[:3, 3] for g in guesses], axis=0)
+            placed[c] = m
+            grown = True
+        if not grown:
+            break
+    r = np.stack([placed[c][:3, :3] if c in placed else np.asarray(mounts_r[c]) for c in range(len(cams))])
+    t = np.stack([placed[c][:3, 3] if c in placed else np.asarray(mounts_t[c]) for c in range(len(cams))])
+    return jnp.asarray(r, dtype), jnp.asarray(t, dtype), sorted(set(range(len(cams))) - set(placed))
+
+
 def refit_rig(
     calibrations: Sequence[Calibration],
     observations: Sequence[Correspondences] | Mapping[str, Correspondences],
@@ -198,6 +251,7 @@ def refit_rig(
     fit_targets: bool = True,
     reference: str | int | None = 0,
     fit_extrinsics: bool = True,
+    estimate_mountings: bool = False,
     fixed: Mapping[str, Iterable[str]] | Iterable[str] | None = None,
     target_names: Sequence[str] | None = None,
     loss: str = "linear",
@@ -221,7 +275,10 @@ def refit_rig(
     The gauge: ``reference`` (a camera name or index) holds that camera's mounting at its initial
     value, and the others are fitted relative to it (kalibr's cam0); ``None`` fits every mounting,
     which only known targets (``fit_targets=False``) determine. ``fit_extrinsics=False`` holds every
-    mounting. ``fixed``: intrinsic parameter names held for every camera (``("k4",)``) or per camera
+    mounting. ``estimate_mountings=True`` replaces the start mountings of the cameras other than the
+    reference by kalibr's initialisation: each one placed through the target views it shares with
+    an already placed camera (linear board poses from the initial intrinsics, averaged over the
+    shared views); a camera sharing no view keeps its start value. ``fixed``: intrinsic parameter names held for every camera (``("k4",)``) or per camera
     (``{"FV": ("k4",)}``), also as ``"FV.k4"`` in a flat list. Runs in the dtype of the cameras
     (float64 recommended). Problems with the inputs raise `ValueError`.
     """
@@ -310,6 +367,10 @@ def refit_rig(
                             n_views=n_targets, dtype=dtype)
     corrs = tuple(Correspondences(o.points, o.pixels, o.view, o.weight, n_views=n_targets, dtype=dtype)
                   if o is not None else empty for o in obs)
+    if estimate_mountings:
+        if ref is None:
+            raise ValueError("refit_rig: estimate_mountings needs a reference camera to start from")
+        mounts_r, mounts_t, _ = _estimate_mountings(cams, mounts_r, mounts_t, corrs, n_targets, ref, dtype)
     if target_poses is None:
         if not fit_targets:
             raise ValueError("refit_rig: fit_targets=False needs target_poses")

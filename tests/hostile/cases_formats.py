@@ -163,6 +163,8 @@ CASES = [
          "--out {tmp}/out", setup=_rig_corr, says=("--calibration", "not used with --rig"), absent=("{tmp}/out",)),
     Case("formats-rig-unknown-reference", "refit {tmp}/corr.json --rig {tmp}/rig.yaml --reference RV --out {tmp}/out",
          setup=_rig_corr, says=("--reference 'RV'",), absent=("{tmp}/out",)),
+    Case("formats-rig-estimate-without-rig", "refit {tmp}/corr.json --estimate-mountings --out {tmp}/out",
+         setup=_rig_corr, says=("--estimate-mountings need --rig",), absent=("{tmp}/out",)),
     Case("formats-rig-out-is-a-file", "refit {tmp}/corr.json --rig {tmp}/rig.yaml --out {tmp}/rig.yaml",
          setup=_rig_corr, says=("not a folder",)),
     Case("formats-rig-file-to-single-refit", "refit {tmp}/corr.json --model kb --width 640 --height 480 --out {tmp}/o.json",

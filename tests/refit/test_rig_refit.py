@@ -133,6 +133,19 @@ def test_covariance_matches_the_monte_carlo_spread():
         assert abs(np.mean(np.asarray(fits)[:, k]) - tv) < 3 * predicted[k] / np.sqrt(len(fits)) + 1e-9, n
 
 
+def test_mountings_estimated_from_shared_views_when_the_start_knows_none():
+    """kalibr's initialisation: every mounting but the reference's starts at the vehicle origin,
+    looking forward; the shared board views place them, and the fit recovers the truth."""
+    truth = truth_rig()
+    start = [c if i == 0 else Calibration(c.name, c.camera, jf.Pose.identity(dtype=jnp.float64))
+             for i, c in enumerate(perturbed(truth))]
+    res = refit_rig(start, observe(truth), estimate_mountings=True)
+    assert bool(res.converged) and float(res.rms_px) < 1e-6
+    for fit, t in zip(res.calibrations, truth, strict=True):
+        np.testing.assert_allclose(np.asarray(fit.camera_to_vehicle.translation),
+                                   np.asarray(t.camera_to_vehicle.translation), atol=1e-8)
+
+
 def test_known_targets_fix_the_gauge_in_the_vehicle_frame():
     """Points surveyed in the vehicle frame (target poses known): every mounting is fitted, the
     reference camera's too."""
@@ -173,7 +186,8 @@ def test_cli_rig_refit_from_a_kalibr_camchain(tmp_path):
     data = json.loads((tmp_path / "corr.json").read_text())
     assert {v["camera"] for v in data["views"]} == set(NAMES)
     r = CliRunner().invoke(app, ["refit", str(tmp_path / "corr.json"), "--rig", str(tmp_path / "camchain.yaml"),
-                                 "--out", str(tmp_path / "out"), "--report", str(tmp_path / "report.json")])
+                                 "--out", str(tmp_path / "out"), "--report", str(tmp_path / "report.json"),
+                                 "--estimate-mountings"])
     assert r.exit_code == 0, r.output
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["reference"] == "FV" and report["cameras"]["MVL"]["camera_to_vehicle"]["std"]["tx"] > 0
