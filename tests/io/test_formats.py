@@ -298,6 +298,19 @@ def test_carla_blueprint_attributes(tmp_path):
         with pytest.raises(jf.CalibrationError, match=r"wide\.json: field 'sensors\[0\]\.attributes\.camera_model'"
                                                       r".*carla_wide_angle"):
             load_camera_calibration(lens)
+        return
+    fish = load_camera_calibration(lens, dtype=jnp.float64)
+    assert type(fish.camera).__name__ == "CarlaWideAngle" and fish.name == "fish"
+    vec = np.asarray(intrinsics_vector(fish.camera))
+    assert vec[0] == 200.0 and vec[1] == 0.0  # fov, k0 as given; k1..k3 CARLA's defaults
+    assert holds_exactly("carla", fish)
+    export_calibrations([fish], "carla", tmp_path / "back.json")
+    data = json.loads((tmp_path / "back.json").read_text())["sensors"][0]
+    assert data["blueprint"] == "sensor.camera.rgb_wide_angle_lens"
+    assert data["attributes"]["camera_model"] == "equidistant"
+    back = load_camera_calibration(tmp_path / "back.json", dtype=jnp.float64)
+    np.testing.assert_array_equal(np.asarray(intrinsics_vector(back.camera)), vec)
+    assert back.camera.image_size == (1280, 966)
 
 
 def test_export_cli_writes_exactly_or_converts_within_max_error(tmp_path):

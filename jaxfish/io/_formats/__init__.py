@@ -23,7 +23,7 @@ from ...refit._parameters import PARAMETER_NAMES, canonical_model_name, intrinsi
 from .._atomic import atomic_write_text
 from .._json import read_json, regular_file, to_json_text
 from . import _basalt, _carla, _colmap, _kalibr, _opencv
-from ._common import CameraRecord, ModelMapping, file_stem, short, writable_models
+from ._common import CameraRecord, ModelMapping, file_stem, short, string_parameters, writable_models
 
 CALIBRATION_FORMATS: tuple[str, ...] = ("jaxfish", "kalibr", "colmap", "opencv", "basalt", "carla")
 """Calibration file formats jaxfish reads (``jaxfish`` is its own calibration JSON)."""
@@ -159,8 +159,10 @@ def record_of(calib: Calibration) -> CameraRecord:
     intr = intrinsics_to_dict(calib.camera)
     model = canonical_model_name(calib.camera)
     params = {k: float(intr[k]) for k in PARAMETER_NAMES[model]}
+    strings = {k: str(intr[k]) for k in string_parameters(model) if k in intr}
     m = np.asarray(calib.camera_to_vehicle.as_matrix(), dtype=np.float64)
-    return CameraRecord(calib.name, model, params, int(calib.camera.width), int(calib.camera.height), m)
+    return CameraRecord(calib.name, model, params, int(calib.camera.width), int(calib.camera.height), m,
+                        strings=strings)
 
 
 def holds_exactly(fmt: str, calib: Calibration) -> bool:

@@ -12,7 +12,10 @@ degrees), converted to jaxfish's OpenCV camera -> ISO 8855 vehicle pose as
 
 A plain ``sensor.camera.*`` is CARLA's pinhole (`jaxfish.Pinhole.from_fov`: focal length
 ``W / (2 tan(fov/2))`` from the horizontal ``fov``, optical axis at the image centre); a sensor
-with the WideAngle lens attributes (``camera_model``, ``k0``..``k3``) is ``carla_wide_angle``.
+with the WideAngle lens attributes (``camera_model``, ``k0``..``k3``) or a ``*_wide_angle_lens``
+blueprint (CARLA 0.9.16) is ``carla_wide_angle`` (``camera_model`` default ``kannala-brandt``,
+``fov`` and ``k0``..``k3`` CARLA's defaults where absent), written as
+``sensor.camera.rgb_wide_angle_lens``.
 """
 
 from __future__ import annotations
@@ -77,8 +80,8 @@ def _sensor(s: Any, source: str, where: str, index: int) -> CameraRecord:
         if "carla_wide_angle" not in MODEL_CLASSES:
             raise fail(source, field, "CARLA's WideAngle lens is jaxfish's lens model 'carla_wide_angle', which this "
                        "version of jaxfish does not have")
-        return CameraRecord(name, "carla_wide_angle", _wide_angle_params(attrs, w, h, source, f"{where}.attributes"),
-                            w, h, pose, where=where)
+        params, strings = _wide_angle(attrs, source, f"{where}.attributes")
+        return CameraRecord(name, "carla_wide_angle", params, w, h, pose, where=where, strings=strings)
     if not 0.0 < fov < 180.0:
         raise fail(source, f"{where}.attributes.fov", f"a pinhole's horizontal fov must be in (0, 180) degrees, got {short(fov)}")
     f = w / (2.0 * math.tan(math.radians(fov) / 2.0))
@@ -86,25 +89,20 @@ def _sensor(s: Any, source: str, where: str, index: int) -> CameraRecord:
                         where=where)
 
 
-def _wide_angle_params(attrs, w, h, source, where) -> dict[str, float]:
-    """The carla_wide_angle parameters: every parameter name of the model read from the blueprint
-    attribute of the same name (the model's own module defines them and their defaults)."""
-    from ...refit._parameters import MODEL_CLASSES as classes
+def _wide_angle(attrs, source, where) -> tuple[dict[str, float], dict[str, str]]:
+    """The carla_wide_angle parameters (``fov``, ``k0`` .. ``k3``: the blueprint attributes of the
+    same names, CARLA's defaults where absent) and its ``camera_model`` (default
+    ``kannala-brandt``, as the sensor's)."""
+    from ...cameras import _carla_wide_angle as cwa
 
-    names = PARAMETER_NAMES["carla_wide_angle"]
-    cls = classes["carla_wide_angle"]
-    from_attributes = getattr(cls, "parameters_from_attributes", None)
-    if from_attributes is not None:
-        try:
-            return dict(from_attributes(attrs, width=w, height=h))
-        except ValueError as e:
-            raise fail(source, where, str(e)) from None
-    out = {}
-    for n in names:
-        if n not in attrs:
-            raise fail(source, f"{where}.{n}", "missing")
-        out[n] = number(attrs[n], source, f"{where}.{n}")
-    return out
+    model = attrs.get("camera_model", "kannala-brandt")
+    if not isinstance(model, str) or model.strip().lower().replace("_", "-") not in cwa.CARLA_CAMERA_MODELS:
+        raise fail(source, f"{where}.camera_model", f"expected one of {', '.join(cwa.CARLA_CAMERA_MODELS)}, "
+                   f"got {short(model)}")
+    defaults = {"fov": cwa.CARLA_DEFAULT_FOV_DEG, **dict(zip(("k0", "k1", "k2", "k3"), cwa.CARLA_DEFAULT_KB, strict=True))}
+    params = {n: number(attrs[n], source, f"{where}.{n}") if n in attrs else float(defaults[n])
+              for n in PARAMETER_NAMES["carla_wide_angle"]}
+    return params, {"camera_model": model.strip().lower().replace("_", "-")}
 
 
 def read(data: Any, source: str) -> list[CameraRecord]:
@@ -147,14 +145,13 @@ def write(records: Sequence[CameraRecord]) -> dict[str, Any]:
         if fov is not None:
             attrs["fov"] = repr(fov)
         else:
-            cls = MODEL_CLASSES["carla_wide_angle"]
-            to_attributes = getattr(cls, "attributes_from_parameters", None)
-            vals = dict(to_attributes(r.params, width=r.width, height=r.height)) if to_attributes else r.params
-            attrs.update({k: (v if isinstance(v, str) else repr(float(v))) for k, v in vals.items()})
+            attrs.update(r.strings)
+            attrs.update({k: repr(float(v)) for k, v in r.params.items()})
         m = r.camera_to_vehicle
         unreal = opencv_camera_pose_to_carla(Pose(m[:3, :3], m[:3, 3], dtype=np.float64))
         loc = [float(x) + 0.0 for x in np.asarray(unreal.translation)]
         rot = [float(x) + 0.0 for x in carla_angles_from_matrix(np.asarray(unreal.rotation_matrix))]
-        sensors.append({"name": r.name, "blueprint": "sensor.camera.rgb", "attributes": attrs,
+        blueprint = "sensor.camera.rgb" if fov is not None else "sensor.camera.rgb_wide_angle_lens"
+        sensors.append({"name": r.name, "blueprint": blueprint, "attributes": attrs,
                         "transform": {"location": loc, "rotation": rot}})
     return {"sensors": sensors}

@@ -196,10 +196,15 @@ class CameraRecord:
     height: int
     camera_to_vehicle: np.ndarray
     where: str = ""
+    strings: dict[str, str] = dataclasses.field(default_factory=dict)
+    """The model's non-numeric intrinsic fields (`jaxfish.refit` ``STRING_PARAMETERS``: CARLA's
+    ``camera_model``)."""
 
     def to_dict(self) -> dict[str, Any]:
         """The jaxfish calibration JSON object of this camera."""
-        return calibration_dict(self.name, self.model, self.params, self.width, self.height, self.camera_to_vehicle)
+        out = calibration_dict(self.name, self.model, self.params, self.width, self.height, self.camera_to_vehicle)
+        out["intrinsic"].update(self.strings)
+        return out
 
 
 def calibration_dict(name: str, model: str, params: Mapping[str, float], width: int, height: int,
@@ -262,3 +267,10 @@ def file_stem(name: str, what: str) -> str:
         raise CalibrationError(f"{what}: camera name {short(name)} cannot be a file name (no '/', '\\', NUL, line breaks, "
                                "'.' or '..')")
     return name
+
+
+def string_parameters(model: str) -> tuple[str, ...]:
+    """The non-numeric intrinsic fields of a model (none for most)."""
+    from ...refit import _parameters
+
+    return tuple(getattr(_parameters, "STRING_PARAMETERS", {}).get(model, {}))
