@@ -7,6 +7,7 @@ and optionally the pose (``R``/``rvec`` and ``T``/``tvec``: vehicle -> camera, a
 
 The model: ``xi`` present -> ``cv2.omnidir`` (Mei); ``distortion_model``
 ``fisheye``/``equidistant`` -> ``cv2.fisheye`` (Kannala-Brandt, 4 coefficients);
+``pinhole``/``none`` -> an ideal pinhole (every coefficient 0);
 ``plumb_bob``/``radtan``/``rational_polynomial``/``thin_prism`` or 5, 8, 12, 14 coefficients ->
 ``cv2.projectPoints``' model (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, τx, τy]]]]). Four
 coefficients without ``distortion_model`` are ambiguous (cv2.fisheye's k1..k4 or cv2's k1, k2,
@@ -39,6 +40,7 @@ OPENCV_MODELS: tuple[ModelMapping, ...] = (
     ModelMapping("fisheye", "kannala_brandt", (*_P, "k1", "k2", "k3", "k4")),
     ModelMapping("omnidir", "mei", (*_P, "xi", "k1", "k2", "p1", "p2")),
     ModelMapping("opencv", "opencv", (*_P, *_OPENCV_D)),
+    ModelMapping("pinhole", "pinhole", _P),
     ModelMapping("opencv", "pinhole", _P),
 )
 """OpenCV model <-> jaxfish model (``K``'s fx, fy, cx, cy, then ``xi`` and the coefficients of
@@ -47,7 +49,7 @@ OPENCV_MODELS: tuple[ModelMapping, ...] = (
 _DISTORTION_MODELS = {"fisheye": "fisheye", "equidistant": "fisheye", "kannala_brandt": "fisheye",
                       "omnidir": "omnidir", "mei": "omnidir",
                       "plumb_bob": "opencv", "radtan": "opencv", "rational_polynomial": "opencv",
-                      "thin_prism": "opencv", "opencv": "opencv", "pinhole": "opencv"}
+                      "thin_prism": "opencv", "opencv": "opencv", "pinhole": "pinhole", "none": "pinhole"}
 
 
 def _matrix(value: Any, source: str, field: str) -> np.ndarray:
@@ -126,12 +128,17 @@ def read(data: Any, source: str, name: str) -> list[CameraRecord]:
                            "model has none (only 0 is read)")
             d = d[:12]
         values += d.tolist() + [0.0] * (12 - len(d))
+    if tool == "pinhole":
+        if len(d) not in (0, 4, 5, 8, 12, 14) or any(v != 0 for v in d):
+            raise fail(source, d_key or "D", f"distortion_model {dm} takes no distortion (all coefficients 0)")
+        d = np.zeros(0)
+        values = values[:4]
     m = find_reader(OPENCV_MODELS, tool)
     assert m is not None
     if tool == "opencv" and not m.available:
         raise fail(source, d_key or "D", "cv2's pinhole distortion is jaxfish's lens model 'opencv', which this "
                    "version of jaxfish does not have")
-    if m.model == "pinhole" and m.available and tool == "opencv":  # an ideal pinhole only
+    if m.model == "pinhole" and tool == "opencv":  # an ideal pinhole only
         if any(v != 0 for v in values[4:]):
             raise fail(source, d_key or "D", "cv2's distortion is jaxfish's lens model 'opencv', which this version of "
                        "jaxfish does not have (only all-zero coefficients, an ideal pinhole, are read)")
@@ -184,12 +191,14 @@ def write(record: CameraRecord) -> str:
     v2c = np.linalg.inv(record.camera_to_vehicle)
     lines = ["%YAML:1.0", "---", f"camera_name: {_quote(record.name)}",
              f"image_width: {record.width}", f"image_height: {record.height}"]
-    dm = {"fisheye": "fisheye", "omnidir": "omnidir", "opencv": "rational_polynomial"}[m.tool]
+    dm = {"fisheye": "fisheye", "omnidir": "omnidir", "opencv": "rational_polynomial", "pinhole": "pinhole"}[m.tool]
     if m.tool == "omnidir":
         lines.append(f"xi: {_num(values[4])}")
         d = values[5:]
     elif m.tool == "fisheye":
         d = values[4:]
+    elif m.tool == "pinhole":
+        d = [0.0] * 5
     else:
         d = list(values[4:]) + [0.0] * (12 - len(values[4:]))
         for n in (5, 8, 12):  # the shortest of cv2's lengths that holds every nonzero coefficient
