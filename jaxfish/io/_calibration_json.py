@@ -150,11 +150,12 @@ def load_calibration(path: str | os.PathLike, *, apply_errata: bool = False, dty
     (a directory, a FIFO, a symbolic link loop).
 
     Another tool's calibration file (kalibr, COLMAP, OpenCV, basalt, CARLA: ``docs/interop.md``)
-    is read as `jaxfish.io.load_camera_calibration` reads it (its one camera, of any lens model).
+    is read as `jaxfish.io.load_camera_calibration` reads it (its one camera, or ``PATH::NAME``'s,
+    of any lens model).
     """
     from ._formats import detect_calibration_format
 
-    if detect_calibration_format(path) != "jaxfish":
+    if "::" in os.fspath(path) and not Path(path).exists() or detect_calibration_format(path) != "jaxfish":
         from ._correspondences import load_camera_calibration
 
         return load_camera_calibration(path, dtype=dtype)

@@ -218,10 +218,14 @@ def load_camera_calibration(path: str | os.PathLike, *, dtype=None, camera: str 
     files included) or another tool's file (kalibr camchain YAML, COLMAP ``cameras.txt`` or its
     folder, OpenCV FileStorage YAML, basalt JSON, CARLA sensor JSON: ``docs/interop.md``), told
     apart by name and content. A file of several cameras needs ``camera`` (a name, or an index
-    such as ``"0"``) unless it holds one."""
+    such as ``"0"``) unless it holds one; ``PATH::NAME`` (a path that does not exist as written)
+    names it too, so that every command-line calibration argument can pick a camera."""
     from ._formats import detect_calibration_format, read_calibration_file
 
-    path = Path(path)
+    text = os.fspath(path)
+    if camera is None and "::" in text and not Path(text).exists():
+        text, camera = text.rsplit("::", 1)
+    path = Path(text)
     fmt = detect_calibration_format(path)
     if fmt == "jaxfish":
         return camera_calibration_from_dict(_read_json(path, CalibrationError), source=str(path), dtype=dtype)
@@ -234,7 +238,8 @@ def select_camera(calibs: list[Calibration], path: Path, camera: str | None) -> 
     if camera is None:
         if len(calibs) == 1:
             return calibs[0]
-        raise CalibrationError(f"{path}: holds {len(calibs)} cameras ({', '.join(names)}); say which one")
+        raise CalibrationError(f"{path}: holds {len(calibs)} cameras ({', '.join(names)}); say which one "
+                               f"({path}::NAME)")
     if camera in names:
         return calibs[names.index(camera)]
     if camera.isdigit() and int(camera) < len(calibs):

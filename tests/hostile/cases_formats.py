@@ -18,6 +18,9 @@ _KALIBR = """cam0:
 """
 
 
+_TWO = _KALIBR + _KALIBR.replace("cam0", "cam1") + "  T_cn_cnm1: [[1, 0, 0, -0.1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n"
+
+
 def _write(name: str, text: str):
     def setup(tmp: Path) -> None:
         (tmp / name).write_text(text)
@@ -129,6 +132,11 @@ CASES = [
              f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, "
              f"*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}]\n" for i in range(8))
              + "K: *i\n"), says=("c.yaml: field 'K[0][0]': expected a number, got list [[[...]",)),
+    Case("formats-several-cameras-unnamed", "convert {tmp}/c.yaml --to kb --out {tmp}/o.json",
+         setup=_write("c.yaml", _TWO), says=("holds 2 cameras", "::NAME"),
+         absent=("{tmp}/o.json",)),
+    Case("formats-several-cameras-named", "convert {tmp}/c.yaml::cam1 --to ucm --out {tmp}/o.json --fov image",
+         setup=_write("c.yaml", _TWO), exit=0, stdout_says=("wrote {tmp}/o.json",)),
     # jaxfish export
     Case("formats-export-name-escapes-folder", "export {tmp}/c.json {tmp}/c2.json --format opencv --out {tmp}/ocv",
          setup=lambda t: _named_calibration(t, "../escaped"), says=("camera name '../escaped'",),

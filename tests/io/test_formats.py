@@ -130,6 +130,9 @@ cam1:
         load_camera_calibration(p)
     assert load_camera_calibration(p, camera="cam1").name == "cam1"
     assert load_camera_calibration(p, camera="0").name == "cam0"
+    assert load_camera_calibration(f"{p}::cam1").name == jf.load_calibration(f"{p}::1").name == "cam1"
+    with pytest.raises(jf.CalibrationError, match=r"no camera 'FV' \(cameras: cam0, cam1\)"):
+        load_camera_calibration(f"{p}::FV")
 
 
 def test_kalibr_documented_camchain(tmp_path):
