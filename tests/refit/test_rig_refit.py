@@ -198,3 +198,20 @@ def test_cli_rig_refit_from_a_kalibr_camchain(tmp_path):
                                    np.asarray(c.camera_to_vehicle.translation), atol=0.03)
         fx = report["cameras"][c.name]["intrinsics"]["fx"]
         assert fx["value"] == float(fit.camera.fx) and abs(fx["value"] - float(c.camera.fx)) < 4 * fx["std"]
+
+
+def test_a_camera_without_observations_keeps_its_calibration():
+    truth = truth_rig()
+    start = perturbed(truth)
+    obs = dict(zip(NAMES, observe(truth), strict=True))
+    del obs["MVR"]
+    res = refit_rig(start, obs)
+    assert res.determined and not any(n.startswith("MVR.") for n in res.parameter_names)
+    assert np.array_equal(np.asarray(intrinsics_vector(res.calibration("MVR").camera)),
+                          np.asarray(intrinsics_vector(start[2].camera)))
+    assert np.array_equal(np.asarray(res.calibration("MVR").camera_to_vehicle.translation),
+                          np.asarray(start[2].camera_to_vehicle.translation))
+    np.testing.assert_allclose(np.asarray(res.calibration("MVL").camera_to_vehicle.translation),
+                               np.asarray(truth[1].camera_to_vehicle.translation), atol=1e-8)
+    with pytest.raises(ValueError, match="unknown camera"):
+        refit_rig(start, {"RV": obs["FV"]})
