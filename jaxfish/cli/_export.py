@@ -19,7 +19,8 @@ wide-angle lenses within about a pixel)."""
 @app.command()
 def export(
     calibrations: list[Path] = typer.Argument(..., help="Calibration files (any format jaxfish reads; a file of "
-                                              "several cameras gives them all)."),
+                                              "several cameras gives them all, PATH::NAME one), COLMAP folders or "
+                                              "folders of calibration JSON files."),
     fmt: str = typer.Option(..., "--format", "-f", help="kalibr, colmap, opencv, basalt or carla."),
     out: Path = typer.Option(..., "--out", "-o", help="Output file (kalibr YAML, basalt JSON, CARLA JSON, OpenCV YAML "
                              "of one camera) or folder (COLMAP text model; OpenCV NAME.yaml per camera)."),
@@ -59,7 +60,7 @@ def export(
         format_free_parameters,
         format_models,
         holds_exactly,
-        read_calibration_file,
+        read_calibration_paths,
     )
     from ..refit import canonical_model_name, convert_camera, intrinsics_vector, parameter_names
 
@@ -72,13 +73,8 @@ def export(
             raise fail(f"--to {to!r}: {e}") from None
         if target not in models:
             raise fail(f"--to {target}: {fmt} does not hold that model (it holds: {', '.join(models) or 'none'})")
-    calibs: list[Calibration] = []
-    for path in calibrations:
-        calibs.extend(read_calibration_file(path, dtype=np.float64))
+    calibs = read_calibration_paths(calibrations, dtype=np.float64)
     names = [c.name for c in calibs]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise fail(f"two cameras are named {dup[0]!r}: camera names must differ within one export")
     check_export_names(names, fmt, out)
     written: list[Calibration] = []
     rows = []

@@ -37,21 +37,16 @@ def refit_rig_command(correspondences: Path, rig_files: list[Path], out: Path, r
         camera_calibration_to_dict,
         load_rig_correspondences,
     )
-    from ..io._formats import read_calibration_file
+    from ..io._formats import read_calibration_paths
     from ..io._formats._common import file_stem
     from ..io._json import to_json_text
     from ..refit import canonical_model_name, intrinsics_vector, parameter_names, refit_rig
     from ..transforms import Pose
 
-    calibs = []
-    for path in rig_files:
-        calibs.extend(read_calibration_file(path, dtype=np.float64))
+    calibs = read_calibration_paths(rig_files, dtype=np.float64)
     names = [c.name for c in calibs]
     for n in names:
         file_stem(n, f"--out {out}")
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise fail(f"--rig: two cameras are named {dup[0]!r}; camera names must differ")
     data = load_rig_correspondences(correspondences)
     unknown = [c for c in data.observations if c not in names]
     if unknown:

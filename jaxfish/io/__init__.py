@@ -119,6 +119,7 @@ from ._formats import export_calibrations as export_calibrations
 from ._formats import format_models as format_models
 from ._formats import holds_exactly as holds_exactly
 from ._formats import read_calibration_file as read_calibration_file
+from ._formats import read_calibration_paths as read_calibration_paths
 from ._images import read_image as read_image
 from ._images import read_image_metadata as read_image_metadata
 from ._images import write_image as write_image

@@ -244,7 +244,7 @@ def _estimate_mountings(cams, mounts_r, mounts_t, corrs, n_targets, ref, dtype):
 
 
 def refit_rig(
-    calibrations: Sequence[Calibration],
+    calibrations: Sequence[Calibration] | Mapping[str, Calibration],
     observations: Sequence[Correspondences] | Mapping[str, Correspondences],
     *,
     target_poses: Pose | None = None,
@@ -263,6 +263,7 @@ def refit_rig(
     """Fit every camera's intrinsics and mounting, and the target poses, to the correspondences of
     a rig (kalibr's multi-camera calibration).
 
+    ``calibrations``: the start rig (a sequence, or a mapping such as `jaxfish.default_rig`'s).
     ``observations``: one `Correspondences` per camera (a sequence in ``calibrations``' order or a
     mapping by camera name; a camera without one sees nothing and keeps its calibration), whose
     ``view`` indexes the shared target views (``0 .. n_targets-1``; every camera's ``n_views`` is
@@ -282,7 +283,7 @@ def refit_rig(
     (``{"FV": ("k4",)}``), also as ``"FV.k4"`` in a flat list. Runs in the dtype of the cameras
     (float64 recommended). Problems with the inputs raise `ValueError`.
     """
-    calibs = list(calibrations)
+    calibs = list(calibrations.values()) if isinstance(calibrations, Mapping) else list(calibrations)
     if not calibs:
         raise ValueError("refit_rig: no calibrations")
     names = [c.name for c in calibs]

@@ -360,6 +360,22 @@ def test_export_cli_writes_exactly_or_converts_within_max_error(tmp_path):
     assert r.exit_code == 0 and (tmp_path / "s2" / "cameras.txt").exists()
 
 
+def test_calibration_paths_of_folders_files_and_single_cameras(tmp_path):
+    from jaxfish.io import read_calibration_paths, save_camera_calibration
+
+    (tmp_path / "rig").mkdir()
+    save_camera_calibration(calib("kannala_brandt", 0, "MVL"), tmp_path / "rig" / "MVL.json")
+    save_camera_calibration(calib("double_sphere", 1, "FV"), tmp_path / "rig" / "FV.json")
+    export_calibrations([calib("pinhole", 2, "A"), calib("unified", 1, "B")], "basalt", tmp_path / "b.json")
+    got = read_calibration_paths([tmp_path / "rig", f"{tmp_path / 'b.json'}::cam1"])
+    assert [c.name for c in got] == ["FV", "MVL", "cam1"]
+    with pytest.raises(jf.CalibrationError, match="two cameras are named 'FV'"):
+        read_calibration_paths([tmp_path / "rig", tmp_path / "rig" / "FV.json"])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(jf.CalibrationError, match="neither calibration JSON files nor cameras.txt"):
+        read_calibration_paths([tmp_path / "empty"])
+
+
 def test_load_calibration_dispatches_and_woodscape_files_are_unchanged(tmp_path):
     fv = jf.load_calibration("../shared/calibration/synwoodscape/FV.json")
     assert fv.flavor == "synwoodscape"

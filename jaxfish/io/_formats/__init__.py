@@ -135,6 +135,33 @@ def read_calibration_file(path: str | os.PathLike, *, dtype=None, fmt: str | Non
     return out
 
 
+def read_calibration_paths(paths: Sequence[str | os.PathLike], *, dtype=None) -> list[Calibration]:
+    """Every camera of several calibration paths, in order: files of any format (all their
+    cameras; ``PATH::NAME`` one of them), COLMAP folders, and folders of jaxfish calibration JSON
+    files (a rig folder: its ``*.json`` in name order). Camera names must differ."""
+    from .._correspondences import load_camera_calibration
+
+    out: list[Calibration] = []
+    for p in paths:
+        path = Path(p)
+        if "::" in os.fspath(p) and not path.exists():
+            out.append(load_camera_calibration(p, dtype=dtype))
+        elif path.is_dir() and not (path / "cameras.txt").exists():
+            files = sorted(f for f in path.iterdir() if f.suffix.lower() == ".json")
+            if not files:
+                raise CalibrationError(f"{path}: a folder with neither calibration JSON files nor cameras.txt")
+            for f in files:
+                out.extend(read_calibration_file(f, dtype=dtype))
+        else:
+            out.extend(read_calibration_file(path, dtype=dtype))
+    names = [c.name for c in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise CalibrationError(f"two cameras are named {short(dup[0])} (in {', '.join(os.fspath(p) for p in paths)}): "
+                               "camera names must differ")
+    return out
+
+
 def _read_records(path: Path, fmt: str) -> list[CameraRecord]:
     if fmt == "colmap":
         cameras = path / "cameras.txt" if path.is_dir() else path
