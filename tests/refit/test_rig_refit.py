@@ -215,3 +215,36 @@ def test_a_camera_without_observations_keeps_its_calibration():
                                np.asarray(truth[1].camera_to_vehicle.translation), atol=1e-8)
     with pytest.raises(ValueError, match="unknown camera"):
         refit_rig(start, {"RV": obs["FV"]})
+
+
+def test_cli_rig_refit_with_points_surveyed_in_the_vehicle_frame(tmp_path):
+    """``frame: "vehicle"``: no target pose is fitted and every mounting is, the first camera's too."""
+    from typer.testing import CliRunner
+
+    from jaxfish.cli import app
+    from jaxfish.io import (
+        RigCorrespondences,
+        load_camera_calibration,
+        save_camera_calibration,
+        save_rig_correspondences,
+    )
+
+    truth = truth_rig()
+    poses = target_poses()
+    obs = []
+    for o in observe(truth, poses=poses):
+        pv = jnp.einsum("nij,nj->ni", poses.rotation_matrix[o.view], o.points) + poses.translation[o.view]
+        obs.append(Correspondences(pv, o.pixels, o.view, o.weight, n_views=len(CENTRES)))
+    save_rig_correspondences(RigCorrespondences("vehicle", tuple(f"t{v}" for v in range(len(CENTRES))),
+                                                dict(zip(NAMES, obs, strict=True))), tmp_path / "corr.json")
+    (tmp_path / "rig").mkdir()
+    for c in perturbed(truth, move_reference=True):
+        save_camera_calibration(c, tmp_path / "rig" / f"{c.name}.json")
+    r = CliRunner().invoke(app, ["refit", str(tmp_path / "corr.json"), "--rig", str(tmp_path / "rig"),
+                                 "--out", str(tmp_path / "out"), "--report", str(tmp_path / "report.json")])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "report.json").read_text())["reference"] is None
+    for c in truth:
+        fit = load_camera_calibration(tmp_path / "out" / f"{c.name}.json", dtype=np.float64)
+        np.testing.assert_allclose(np.asarray(fit.camera_to_vehicle.translation),
+                                   np.asarray(c.camera_to_vehicle.translation), atol=1e-7)
