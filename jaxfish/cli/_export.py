@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, fail, say
+from ._app import app, fail, print_warning, say
 
 DEFAULT_TARGETS = ("kannala_brandt", "carla_wide_angle", "mei", "opencv", "double_sphere", "pinhole")
 """The model a camera is converted to when the format lacks its own and ``--to`` is not given:
@@ -99,22 +99,34 @@ def export(
             raise fail(f"{c.name}: converting {source_model} -> {goal}: {e}") from None
         converted = Calibration(c.name, res.camera, c.camera_to_vehicle, c.flavor)
         max_px, rms_px = float(res.max_px), float(res.rms_px)
-        row.update(model=goal, converted=True, max_px=max_px, rms_px=rms_px,
-                   theta_max_deg=math.degrees(float(res.theta_max)), num_target_invalid=int(res.num_target_invalid),
-                   converged=bool(res.converged))
+        theta_deg = math.degrees(float(res.theta_max))
+        radius = getattr(res, "max_radius_px", None)
+        domain = (f"the {c.camera.width}x{c.camera.height} image's valid pixels (up to {theta_deg:.1f} deg off-axis"
+                  + (f", {float(radius):.0f} px from the principal point)" if radius is not None else ")"))
+        invalid, samples = int(res.num_target_invalid), int(res.num_samples)
+        row.update(model=goal, converted=True, max_px=max_px, rms_px=rms_px, domain=domain, theta_max_deg=theta_deg,
+                   num_samples=samples, num_target_invalid=invalid, converged=bool(res.converged))
+        if radius is not None:
+            row["max_radius_px"] = float(radius)
         rows.append(row)
-        say(f"{c.name}: {source_model} -> {goal} up to {row['theta_max_deg']:.1f} deg (the image's field of view): "
-            f"max {max_px:.4g} px, rms {rms_px:.4g} px")
+        say(f"{c.name}: {source_model} -> {goal} over {domain}: max {max_px:.4g} px, rms {rms_px:.4g} px; "
+            f"{invalid} of {samples} rays outside the target's domain")
         if not np.all(np.isfinite(np.asarray(intrinsics_vector(res.camera)))):
             raise fail(f"{c.name}: converting {source_model} -> {goal} gave non-finite parameters; nothing written", code=1)
         if not holds_exactly(fmt, converted):
             raise fail(f"{c.name}: the converted {goal} camera is not one {fmt} holds exactly; nothing written", code=1)
+        problems = []
         if not max_px <= max_error:
-            refused.append(f"{c.name} ({max_px:.4g} px)")
+            problems.append(f"maximum error {max_px:.4g} px exceeds --max-error {max_error:g} px")
+        if invalid > 0:
+            problems.append(f"{invalid} of {samples} rays lie outside the {goal} model's domain")
+        if problems:
+            refused.append(f"{c.name} -> {goal} over {domain}: {'; '.join(problems)}")
         written.append(converted)
     if refused and not force:
-        raise fail(f"conversion error above --max-error {max_error:g} px for {', '.join(refused)}: nothing written "
-                   "(--force writes anyway, --to picks another model)", code=1)
+        raise fail(f"{' | '.join(refused)}; nothing written (--force writes anyway; --to picks another model)")
+    if refused:
+        print_warning(f"{' | '.join(refused)}; written anyway (--force)")
     from ..io import atomic_write_text
     from ..io._json import to_json_text
 

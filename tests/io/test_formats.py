@@ -350,11 +350,11 @@ def test_export_cli_writes_exactly_or_converts_within_max_error(tmp_path):
     assert r.exit_code == 0, r.output
     row = json.loads((tmp_path / "r2.json").read_text())["cameras"][0]
     assert row["converted"] and row["model"] == "kannala_brandt" and 0 < row["max_px"] < 2.0
-    assert "double_sphere -> kannala_brandt" in r.output
-    # Above --max-error: nothing written, exit 1; --force writes.
+    assert "double_sphere -> kannala_brandt over the 1280x966 image's valid pixels" in r.output
+    # Above --max-error: nothing written, exit 2 (as jaxfish convert); --force writes.
     r = run(app, ["export", str(tmp_path / "mvl.json"), "--format", "colmap", "--out", str(tmp_path / "s2"),
                   "--max-error", "1e-6"])
-    assert r.exit_code == 1 and not (tmp_path / "s2").exists()
+    assert r.exit_code == 2 and not (tmp_path / "s2").exists()
     r = run(app, ["export", str(tmp_path / "mvl.json"), "--format", "colmap", "--out", str(tmp_path / "s2"),
                   "--max-error", "1e-6", "--force"])
     assert r.exit_code == 0 and (tmp_path / "s2" / "cameras.txt").exists()
