@@ -13,7 +13,20 @@ from typing import Any
 
 import numpy as np
 
-from ._common import CameraRecord, ModelMapping, fail, find_reader, find_writer, mapping, number, require, short, whole
+from ._common import (
+    CameraRecord,
+    ModelMapping,
+    fail,
+    find_reader,
+    find_writer,
+    mapping,
+    number,
+    quaternion_matrix,
+    quaternion_xyzw,
+    require,
+    short,
+    whole,
+)
 
 _P = ("fx", "fy", "cx", "cy")
 BASALT_MODELS: tuple[ModelMapping, ...] = (
@@ -32,8 +45,6 @@ ignored, written 0: basalt then derives it)."""
 
 def read(data: Any, source: str) -> list[CameraRecord]:
     """The cameras of a parsed basalt calibration JSON."""
-    from ...transforms import Pose
-
     root = mapping(data, source, "<root>")
     v = mapping(require(root, "value0", source, ""), source, "value0")
     intr = require(v, "intrinsics", source, "value0")
@@ -72,15 +83,14 @@ def read(data: Any, source: str) -> list[CameraRecord]:
         qn = float(np.linalg.norm(q))
         if abs(qn - 1.0) > 1e-3:
             raise fail(source, f"{pw}.qw", f"expected a unit quaternion (qx, qy, qz, qw), norm is {qn:.6g}")
-        pose = np.asarray(Pose.from_quaternion_xyzw(q / qn, np.asarray(t), dtype=np.float64).as_matrix(), np.float64)
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = quaternion_matrix(q), t
         records.append(CameraRecord(f"cam{i}", m.model, params, w, h, pose, where=where))
     return records
 
 
 def write(records: Sequence[CameraRecord]) -> dict[str, Any]:
     """The basalt calibration object of cameras whose models basalt has."""
-    from ...transforms import Pose
-
     intr, res, poses = [], [], []
     for r in records:
         found = find_writer(BASALT_MODELS, r.model, r.params)
@@ -92,7 +102,7 @@ def write(records: Sequence[CameraRecord]) -> dict[str, Any]:
         intr.append({"camera_type": m.tool, "intrinsics": vals})
         res.append([int(r.width), int(r.height)])
         m4 = r.camera_to_vehicle
-        q = np.asarray(Pose(m4[:3, :3], m4[:3, 3], dtype=np.float64).as_quaternion_xyzw(), np.float64)
+        q = quaternion_xyzw(m4[:3, :3])
         poses.append({"px": float(m4[0, 3]), "py": float(m4[1, 3]), "pz": float(m4[2, 3]),
                       "qx": float(q[0]), "qy": float(q[1]), "qz": float(q[2]), "qw": float(q[3])})
     zero3 = [0.0, 0.0, 0.0]

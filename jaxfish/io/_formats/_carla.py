@@ -34,9 +34,34 @@ WIDE_ANGLE_ATTRIBUTES = ("camera_model", "k0", "k1", "k2", "k3")
 _PINHOLE_TOLERANCE = 1e-9
 
 
+def carla_rotation(pitch: float, yaw: float, roll: float) -> np.ndarray:
+    """The rotation block of CARLA's ``Transform.get_matrix()`` (Unreal, left-handed, degrees), in
+    float64 NumPy (as `jaxfish.transforms.carla_rotation_matrix`)."""
+    p, y, r = (math.radians(a) for a in (pitch, yaw, roll))
+    cp, sp, cy, sy, cr, sr = math.cos(p), math.sin(p), math.cos(y), math.sin(y), math.cos(r), math.sin(r)
+    return np.array([[cp * cy, cy * sp * sr - sy * cr, -cy * sp * cr - sy * sr],
+                     [cp * sy, sy * sp * sr + cy * cr, -sy * sp * cr + cy * sr],
+                     [sp, -cp * sr, cp * cr]])
+
+
+def carla_angles(rot: np.ndarray) -> tuple[float, float, float]:
+    """``(pitch, yaw, roll)`` degrees of a CARLA rotation matrix (inverse of `carla_rotation`; at
+    pitch ±90° roll is 0)."""
+    r = np.asarray(rot, np.float64)
+    sp = float(np.clip(r[2, 0], -1.0, 1.0))
+    pitch = math.asin(sp)
+    if math.cos(pitch) > 1e-9 and math.hypot(r[0, 0], r[1, 0]) > 1e-9:
+        yaw, roll = math.atan2(r[1, 0], r[0, 0]), math.atan2(-r[2, 1], r[2, 2])
+    else:
+        pitch = math.copysign(math.pi / 2, sp)
+        yaw, roll = math.atan2(-math.copysign(1.0, sp) * r[1, 2], r[1, 1]), 0.0
+    return math.degrees(pitch), math.degrees(yaw), math.degrees(roll)
+
+
 def _transform(value: Any, source: str, field: str) -> np.ndarray:
-    from ...transforms import Pose, carla_camera_pose_to_opencv
-    from ...transforms._pose import carla_rotation_matrix
+    """A sensor's CARLA transform -> the 4x4 OpenCV camera -> ISO vehicle matrix, as
+    `jaxfish.transforms.carla_camera_pose_to_opencv` (``S R M^T``, ``S t``)."""
+    from ...transforms import CARLA_TO_ISO, UNREAL_CAMERA_TO_OPENCV
 
     t = mapping(value, source, field)
     loc, rot = t.get("location"), t.get("rotation")
@@ -54,8 +79,10 @@ def _transform(value: Any, source: str, field: str) -> np.ndarray:
         raise fail(source, f"{field}.rotation", f"expected [pitch, yaw, roll] degrees, got {short(rot)}")
     xyz = [number(v, source, f"{field}.location[{i}]") for i, v in enumerate(loc)]
     pyr = [number(v, source, f"{field}.rotation[{i}]") for i, v in enumerate(rot)]
-    unreal = Pose(np.asarray(carla_rotation_matrix(*pyr, dtype=np.float64), np.float64), np.asarray(xyz), dtype=np.float64)
-    return np.asarray(carla_camera_pose_to_opencv(unreal).as_matrix(), np.float64)
+    out = np.eye(4)
+    out[:3, :3] = CARLA_TO_ISO @ carla_rotation(*pyr) @ UNREAL_CAMERA_TO_OPENCV.T
+    out[:3, 3] = CARLA_TO_ISO @ np.asarray(xyz)
+    return out
 
 
 def _sensor(s: Any, source: str, where: str, index: int) -> CameraRecord:
@@ -135,8 +162,7 @@ def writable(record: CameraRecord) -> bool:
 
 def write(records: Sequence[CameraRecord]) -> dict[str, Any]:
     """The CARLA sensors object of cameras CARLA renders exactly (`writable`)."""
-    from ...transforms import Pose, opencv_camera_pose_to_carla
-    from .._carla_capture import carla_angles_from_matrix
+    from ...transforms import CARLA_TO_ISO, UNREAL_CAMERA_TO_OPENCV
 
     sensors = []
     for r in records:
@@ -148,9 +174,8 @@ def write(records: Sequence[CameraRecord]) -> dict[str, Any]:
             attrs.update(r.strings)
             attrs.update({k: repr(float(v)) for k, v in r.params.items()})
         m = r.camera_to_vehicle
-        unreal = opencv_camera_pose_to_carla(Pose(m[:3, :3], m[:3, 3], dtype=np.float64))
-        loc = [float(x) + 0.0 for x in np.asarray(unreal.translation)]
-        rot = [float(x) + 0.0 for x in carla_angles_from_matrix(np.asarray(unreal.rotation_matrix))]
+        loc = [float(x) + 0.0 for x in CARLA_TO_ISO @ m[:3, 3]]  # + 0.0: no "-0.0" in the file
+        rot = [float(x) + 0.0 for x in carla_angles(CARLA_TO_ISO @ m[:3, :3] @ UNREAL_CAMERA_TO_OPENCV)]
         blueprint = "sensor.camera.rgb" if fov is not None else "sensor.camera.rgb_wide_angle_lens"
         sensors.append({"name": r.name, "blueprint": blueprint, "attributes": attrs,
                         "transform": {"location": loc, "rotation": rot}})

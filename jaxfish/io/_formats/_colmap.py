@@ -12,7 +12,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import CameraRecord, ModelMapping, fail, find_reader, find_writer, number, short
+from ._common import (
+    CameraRecord,
+    ModelMapping,
+    fail,
+    find_reader,
+    find_writer,
+    number,
+    quaternion_matrix,
+    quaternion_xyzw,
+    rigid_inverse,
+    short,
+)
 
 _P = ("fx", "fy", "cx", "cy")
 COLMAP_MODELS: tuple[ModelMapping, ...] = (
@@ -81,8 +92,6 @@ def read(cameras_txt: Path, images_txt: Path | None) -> list[CameraRecord]:
 
 
 def _read_images(path: Path, cams: dict[int, CameraRecord]) -> None:
-    from ...transforms import Pose
-
     source = str(path)
     seen: set[int] = set()
     # Lines alternate: image line, then its 2D points (a points line may be empty: _lines drops it).
@@ -109,11 +118,12 @@ def _read_images(path: Path, cams: dict[int, CameraRecord]) -> None:
         qn = float(np.linalg.norm(q))
         if abs(qn - 1.0) > 1e-3:
             raise fail(source, f"{where}.QW", f"expected a unit quaternion (QW QX QY QZ), norm is {qn:.6g}")
-        world_to_cam = Pose.from_quaternion_xyzw(np.array([q[1], q[2], q[3], q[0]]) / qn, np.array(t), dtype=np.float64)
+        world_to_cam = np.eye(4)
+        world_to_cam[:3, :3], world_to_cam[:3, 3] = quaternion_matrix([q[1], q[2], q[3], q[0]]), t
         if cam_id not in seen:  # a camera seen in several images: the first one places it
             seen.add(cam_id)
             r = cams[cam_id]
-            r.camera_to_vehicle = np.asarray(world_to_cam.inverse().as_matrix(), dtype=np.float64)
+            r.camera_to_vehicle = rigid_inverse(world_to_cam)
             r.name = " ".join(parts[9:]).rsplit(".", 1)[0] or r.name
         k += 2  # the image line and its points line
     names = [r.name for r in cams.values()]
@@ -124,8 +134,6 @@ def _read_images(path: Path, cams: dict[int, CameraRecord]) -> None:
 
 def write(records: Sequence[CameraRecord]) -> tuple[str, str]:
     """``(cameras.txt, images.txt)`` texts; one image per camera named ``NAME.png``."""
-    from ...transforms import Pose
-
     cams = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
             f"# Number of cameras: {len(records)}"]
     imgs = ["# Image list with two lines of data per image:",
@@ -138,8 +146,8 @@ def write(records: Sequence[CameraRecord]) -> tuple[str, str]:
         m, values = found
         values = [v + _PIXEL_ORIGIN if spec in ("cx", "cy") else v for spec, v in zip(m.params, values, strict=True)]
         cams.append(" ".join([str(i), str(m.tool), str(r.width), str(r.height), *(repr(float(v)) for v in values)]))
-        w2c = np.linalg.inv(r.camera_to_vehicle)
-        q = np.asarray(Pose(w2c[:3, :3], w2c[:3, 3], dtype=np.float64).as_quaternion_xyzw(), dtype=np.float64)
+        w2c = rigid_inverse(r.camera_to_vehicle)
+        q = quaternion_xyzw(w2c[:3, :3])
         vals = [q[3], q[0], q[1], q[2], *w2c[:3, 3]]
         imgs.append(" ".join([str(i), *(repr(float(v)) for v in vals), str(i), f"{r.name}.png"]))
         imgs.append("")

@@ -211,13 +211,11 @@ def calibration_dict(name: str, model: str, params: Mapping[str, float], width: 
                      camera_to_vehicle: np.ndarray) -> dict[str, Any]:
     """The jaxfish calibration JSON object (read by `camera_calibration_from_dict`) of one camera;
     ``camera_to_vehicle`` is a 4x4 matrix (OpenCV camera -> vehicle)."""
-    from ...transforms import Pose
-
     m = np.asarray(camera_to_vehicle, dtype=np.float64)
     rot = m[:3, :3]
     u, _, vt = np.linalg.svd(rot)  # the nearest rotation: files hold rounded matrices
     rot = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    q = np.asarray(Pose(rot, m[:3, 3], dtype=np.float64).as_quaternion_xyzw(), dtype=np.float64)
+    q = quaternion_xyzw(rot)
     intr: dict[str, Any] = {"model": model, "width": float(width), "height": float(height)}
     intr.update({k: float(v) for k, v in params.items()})
     return {"name": name, "extrinsic": {"quaternion": [float(x) for x in q], "translation": [float(x) for x in m[:3, 3]]},
@@ -240,14 +238,6 @@ def rigid_matrix(value: Any, source: str, field: str) -> np.ndarray:
     return m
 
 
-def pose_matrix(calib_dict: Mapping[str, Any]) -> np.ndarray:
-    """The 4x4 camera -> vehicle matrix of a jaxfish calibration dict (ISO translation key)."""
-    from ...transforms import Pose
-
-    ext = calib_dict["extrinsic"]
-    pose = Pose.from_quaternion_xyzw(np.asarray(ext["quaternion"], np.float64),
-                                     np.asarray(ext["translation"], np.float64), dtype=np.float64)
-    return np.asarray(pose.as_matrix(), dtype=np.float64)
 
 
 def rodrigues(omega: np.ndarray) -> np.ndarray:
@@ -274,3 +264,43 @@ def string_parameters(model: str) -> tuple[str, ...]:
     from ...refit import _parameters
 
     return tuple(getattr(_parameters, "STRING_PARAMETERS", {}).get(model, {}))
+
+
+def quaternion_xyzw(rot: np.ndarray) -> np.ndarray:
+    """The unit quaternion ``(x, y, z, w)``, ``w >= 0``, of a rotation matrix, in float64 NumPy
+    (Shepperd's method: the largest of the four squared components is taken first)."""
+    r = np.asarray(rot, dtype=np.float64)
+    tr = r[0, 0] + r[1, 1] + r[2, 2]
+    cand = np.array([tr, r[0, 0], r[1, 1], r[2, 2]])
+    k = int(np.argmax(cand))
+    if k == 0:
+        w = math.sqrt(max(1.0 + tr, 0.0)) / 2
+        q = np.array([(r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w), w])
+    elif k == 1:
+        x = math.sqrt(max(1.0 + r[0, 0] - r[1, 1] - r[2, 2], 0.0)) / 2
+        q = np.array([x, (r[0, 1] + r[1, 0]) / (4 * x), (r[0, 2] + r[2, 0]) / (4 * x), (r[2, 1] - r[1, 2]) / (4 * x)])
+    elif k == 2:
+        y = math.sqrt(max(1.0 - r[0, 0] + r[1, 1] - r[2, 2], 0.0)) / 2
+        q = np.array([(r[0, 1] + r[1, 0]) / (4 * y), y, (r[1, 2] + r[2, 1]) / (4 * y), (r[0, 2] - r[2, 0]) / (4 * y)])
+    else:
+        z = math.sqrt(max(1.0 - r[0, 0] - r[1, 1] + r[2, 2], 0.0)) / 2
+        q = np.array([(r[0, 2] + r[2, 0]) / (4 * z), (r[1, 2] + r[2, 1]) / (4 * z), z, (r[1, 0] - r[0, 1]) / (4 * z)])
+    q = q / np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def quaternion_matrix(q_xyzw) -> np.ndarray:
+    """The rotation matrix of a quaternion ``(x, y, z, w)`` (normalised first), float64 NumPy."""
+    x, y, z, w = np.asarray(q_xyzw, dtype=np.float64) / np.linalg.norm(np.asarray(q_xyzw, dtype=np.float64))
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def rigid_inverse(m: np.ndarray) -> np.ndarray:
+    """The inverse of a 4x4 rigid transform (``Rᵀ``, ``-Rᵀ t``)."""
+    m = np.asarray(m, dtype=np.float64)
+    out = np.eye(4)
+    out[:3, :3] = m[:3, :3].T
+    out[:3, 3] = -m[:3, :3].T @ m[:3, 3]
+    return out

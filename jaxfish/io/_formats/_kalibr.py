@@ -30,6 +30,7 @@ from ._common import (
     mapping,
     numbers,
     require,
+    rigid_inverse,
     rigid_matrix,
     short,
     whole,
@@ -110,7 +111,7 @@ def read(data: Any, source: str) -> list[CameraRecord]:
         else:
             if "T_cn_cnm1" in cam:
                 t = rigid_matrix(cam["T_cn_cnm1"], source, f"{key}.T_cn_cnm1")  # cam n-1 -> cam n
-                chain.append(chain[-1] @ np.linalg.inv(t))
+                chain.append(chain[-1] @ rigid_inverse(t))
             else:
                 chain.append(None)  # type: ignore[arg-type]
         imu.append(rigid_matrix(cam["T_cam_imu"], source, f"{key}.T_cam_imu") if "T_cam_imu" in cam else None)
@@ -123,7 +124,7 @@ def read(data: Any, source: str) -> list[CameraRecord]:
         records.append(CameraRecord(name, m.model, params, w, h, np.eye(4), where=key))
     if all(t is not None for t in imu):
         for r, t in zip(records, imu, strict=True):
-            r.camera_to_vehicle = np.linalg.inv(t)
+            r.camera_to_vehicle = rigid_inverse(t)
     else:
         for i, (r, c) in enumerate(zip(records, chain, strict=True)):
             if c is None:
@@ -145,7 +146,7 @@ def write(records: Sequence[CameraRecord]) -> dict[str, Any]:
         assert found is not None, r.model
         m, values = found
         n = _N_INTRINSICS[m.tool[0]]
-        veh_to_cam = np.linalg.inv(r.camera_to_vehicle)
+        veh_to_cam = rigid_inverse(r.camera_to_vehicle)
         cam: dict[str, Any] = {
             "camera_model": m.tool[0],
             "intrinsics": [float(v) for v in values[:n]],

@@ -29,6 +29,7 @@ from ._common import (
     find_writer,
     number,
     numbers,
+    rigid_inverse,
     rodrigues,
     short,
     whole,
@@ -174,7 +175,7 @@ def read(data: Any, source: str, name: str) -> list[CameraRecord]:
             raise fail(source, t_key, f"expected 3 numbers, got {t.size}")
         v2c = np.eye(4)
         v2c[:3, :3], v2c[:3, 3] = r, t
-        pose = np.linalg.inv(v2c)
+        pose = rigid_inverse(v2c)
     cam_name = data.get("camera_name", name)
     if not isinstance(cam_name, str) or not cam_name:
         raise fail(source, "camera_name", f"expected a non-empty string, got {short(cam_name)}")
@@ -188,7 +189,7 @@ def write(record: CameraRecord) -> str:
     m, values = found
     fx, fy, cx, cy = values[:4]
     k = [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]
-    v2c = np.linalg.inv(record.camera_to_vehicle)
+    v2c = rigid_inverse(record.camera_to_vehicle)
     lines = ["%YAML:1.0", "---", f"camera_name: {_quote(record.name)}",
              f"image_width: {record.width}", f"image_height: {record.height}"]
     dm = {"fisheye": "fisheye", "omnidir": "omnidir", "opencv": "rational_polynomial", "pinhole": "pinhole"}[m.tool]
