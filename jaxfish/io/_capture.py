@@ -105,6 +105,21 @@ def actor_to_dict(actor: Actor) -> dict[str, Any]:
     }
 
 
+def ego_record(frame: StreetFrame) -> dict[str, Any]:
+    """The ``ego.json`` record of a frame: frame number, timestamps at t and t-1 (seconds), ego id,
+    CARLA transforms at t-1 and t, velocity (m/s), acceleration (m/s^2), angular velocity (deg/s)
+    and bounding box."""
+    ego = frame.ego
+    return {
+        "frame": frame.frame, "timestamp_s": frame.timestamp_s, "timestamp_prev_s": frame.timestamp_s - frame.dt_s,
+        "id": ego.id, "transform_prev": _transform(ego.location_prev, ego.rotation_prev),
+        "transform": _transform(ego.location, ego.rotation),
+        "velocity": list(frame.ego_motion.velocity), "acceleration": list(frame.ego_motion.acceleration),
+        "angular_velocity": list(frame.ego_motion.angular_velocity),
+        "bounding_box": {"location": list(ego.bbox_location), "extent": list(ego.bbox_extent)},
+    }
+
+
 def write_images(directory: Path, images: CameraImages, instant: str) -> None:
     """``rgb_, depth_, semantic_, instance_{instant}.png`` (CARLA BGRA encodings) in ``directory``."""
     write_image(directory / f"rgb_{instant}.png", rgb_to_bgra(images.rgb))
@@ -271,15 +286,7 @@ def write_frame(
     _npy(d / "radar.npy", np.asarray(radar).astype(RADAR_DTYPE))
     _json(d / "imu.json", dict(imu))
     _json(d / "gnss.json", dict(gnss))
-    ego = frame.ego
-    _json(d / "ego.json", {
-        "frame": frame.frame, "timestamp_s": frame.timestamp_s, "timestamp_prev_s": frame.timestamp_s - frame.dt_s,
-        "id": ego.id, "transform_prev": _transform(ego.location_prev, ego.rotation_prev),
-        "transform": _transform(ego.location, ego.rotation),
-        "velocity": list(frame.ego_motion.velocity), "acceleration": list(frame.ego_motion.acceleration),
-        "angular_velocity": list(frame.ego_motion.angular_velocity),
-        "bounding_box": {"location": list(ego.bbox_location), "extent": list(ego.bbox_extent)},
-    })
+    _json(d / "ego.json", ego_record(frame))
     _json(d / "actors.json", {"frame": frame.frame, "timestamp_s": frame.timestamp_s,
                               "actors": [actor_to_dict(a) for a in frame.actors]})
     header_path = root / "capture.json"
