@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from .._errors import ImageError
 from ..groundtruth import SYNWOODSCAPE_CLASSES, SYNWOODSCAPE_PALETTE
 from ..io import (
     atomic_write_bytes,
@@ -130,13 +131,17 @@ def write_bev_files(root: Path, sample: str, bev: BevTruth, *, png_level: int) -
 
     stem = f"{sample}_{BEV_CAMERA}"
     cam, c2v, a = bev.camera, bev.camera_to_vehicle, bev.pixel_to_vehicle_xy
+    height, occ = np.asarray(bev.height_m, np.float32), np.asarray(bev.occupancy, bool)
+    if height.shape != (cam.height, cam.width) or occ.shape != height.shape:
+        raise ImageError(f"{root}: sample {sample!r}: height {height.shape} / occupancy {occ.shape} do not match "
+                         f"the BEV image {(cam.height, cam.width)}")
     lo, hi = HEIGHT_COLOR_RANGE_M
     thr = float(bev.occupancy_min_height_m)
-    return [write_depth_npy(root / "bev_height" / "raw_data" / f"{stem}.npy", np.asarray(bev.height_m, np.float32)),
+    return [write_depth_npy(root / "bev_height" / "raw_data" / f"{stem}.npy", height),
             write_png_with_metadata(root / "bev_height" / "colormap" / f"{stem}.png", bev.height_rgb,
                                     bev_metadata(cam, c2v, pixel_to_vehicle_xy=a, content="height above the ground (m), viridis",
                                                  color_range_m=[lo, hi]), png_level=png_level),
-            write_png_with_metadata(root / "bev_occupancy" / f"{stem}.png", np.asarray(bev.occupancy, bool).astype(np.uint8) * 255,
+            write_png_with_metadata(root / "bev_occupancy" / f"{stem}.png", occ.astype(np.uint8) * 255,
                                     bev_metadata(cam, c2v, pixel_to_vehicle_xy=a, content="occupancy: 255 = top surface higher than "
                                                  f"{thr:g} m above the ground, 0 = free", occupancy_min_height_m=thr),
                                     png_level=png_level)]

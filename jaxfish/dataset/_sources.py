@@ -182,9 +182,11 @@ class CaptureSource:
         """The calibration file of ``camera``, byte for byte."""
         return self.calibration_path(camera).read_bytes()
 
-    def read(self, index: int, *, bev: bool = True) -> Frame:
-        """The `Frame` of capture frame ``index`` (with its BEV when ``bev`` and the capture has
-        one). A missing or malformed file raises `jaxfish.io.CaptureError` naming it."""
+    def read(self, index: int, *, bev: bool = True, cameras: bool = True, sensors: bool = True) -> Frame:
+        """The `Frame` of capture frame ``index``: with its BEV when ``bev`` and the capture has
+        one, its fisheye cameras unless ``cameras=False`` (then none), its other sensors unless
+        ``sensors=False`` (then None). A missing or malformed file raises
+        `jaxfish.io.CaptureError` naming it."""
         from ..io import CaptureError
 
         reader = self.reader
@@ -194,11 +196,11 @@ class CaptureSource:
             motion = motion_from_records(actors, ego)
         except (KeyError, TypeError, ValueError) as e:
             raise CaptureError(f"{reader.root}: frame {index}: malformed actors.json / ego.json ({e})") from e
-        names = self.cameras
+        names = self.cameras if cameras else []
         faces = list(reader.faces)
         jobs = [(c, inst, face) for inst in ("prev", "curr") for c in names for face in faces]
         # PNG decoding releases the GIL: every face of every camera in one pool of threads.
-        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs), os.cpu_count() or 1))) as pool:
+        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, os.cpu_count() or 1))) as pool:
             imgs = dict(zip(jobs, pool.map(lambda j: reader.face(index, j[0], j[2], j[1], actor_ids=False), jobs),
                             strict=True))
 
@@ -209,12 +211,14 @@ class CaptureSource:
         camera_frames = tuple(CameraFrame(cube(c, "prev"), cube(c, "curr"), tuple(reader.dvs(index, c, f) for f in faces))
                               for c in names)
         view = self._bev_view(index) if bev and self.has_bev() else None
-        sensors = SensorRecords(ego=ego, lidar=np.ascontiguousarray(reader.lidar(index), np.float32),
-                                semantic_lidar=np.ascontiguousarray(reader.semantic_lidar(index)),
-                                radar=np.ascontiguousarray(reader.radar(index)), imu=reader.imu(index),
-                                gnss=reader.gnss(index))
+        records = None
+        if sensors:
+            records = SensorRecords(ego=ego, lidar=np.ascontiguousarray(reader.lidar(index), np.float32),
+                                    semantic_lidar=np.ascontiguousarray(reader.semantic_lidar(index)),
+                                    radar=np.ascontiguousarray(reader.radar(index)), imu=reader.imu(index),
+                                    gnss=reader.gnss(index))
         return Frame(index=int(index), carla_tags=self.carla_tags, cameras=tuple(names), camera_frames=camera_frames,
-                     motion=motion, bev=view, sensors=sensors)
+                     motion=motion, bev=view, sensors=records)
 
     def _bev_view(self, index: int) -> ViewFrame:
         from ..io import CaptureError

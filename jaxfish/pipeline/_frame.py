@@ -141,7 +141,8 @@ class Frame(eqx.Module):
     - `camera_frames`: one `CameraFrame` per fisheye camera;
     - `motion`: actors and ego poses (`Motion`);
     - `bev`: the BEV top view (`ViewFrame`) or None when the source has none;
-    - `sensors`: the other sensors (`SensorRecords`).
+    - `sensors`: the other sensors (`SensorRecords`), or None when the source was asked for
+      the cameras only.
     """
 
     index: int = eqx.field(static=True)
@@ -150,7 +151,7 @@ class Frame(eqx.Module):
     camera_frames: tuple[CameraFrame, ...]
     motion: Motion
     bev: ViewFrame | None
-    sensors: SensorRecords
+    sensors: SensorRecords | None
 
     def __check_init__(self) -> None:
         if len(self.cameras) != len(self.camera_frames):

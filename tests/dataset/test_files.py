@@ -8,8 +8,8 @@ import time
 
 import numpy as np
 
-from jaxfish.io import depth_to_color, write_npz
-from jaxfish.io._labels import map_face_events
+from jaxfish.io import write_npz
+from jaxfish.pipeline import depth_to_color, map_face_events
 
 
 def test_numpy_event_mapping_follows_the_rule():

@@ -84,7 +84,7 @@ def test_box_pickle_and_displacements(tmp_path):
 
 def test_box_slots_share_one_size_across_actor_counts():
     from jaxfish import groundtruth as gt
-    from jaxfish.io._labels import BOX_SLOT_QUANTUM, box_slots
+    from jaxfish.pipeline import BOX_SLOT_QUANTUM, box_slots
 
     q = BOX_SLOT_QUANTUM
     assert [box_slots(n) for n in (0, 1, q, q + 1, 3 * q)] == [q, q, q, 2 * q, 3 * q]
