@@ -62,9 +62,7 @@ def demo(
     columns: front, rear, top view, left, right)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from ..dataset import EmbeddedSource, write_contact_sheet
-    from ..io import synthesize_capture
-    from ..io._capture import steps_per_frame
+    from ..dataset import EmbeddedSource, steps_per_frame, synthesize_capture, write_contact_sheet
     from ._build import run_build
 
     if frames < 1:

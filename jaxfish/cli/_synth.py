@@ -32,7 +32,7 @@ def synth(
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from .. import default_rig, load_rig
-    from ..io._capture import rig_names, steps_per_frame, synthesize_capture
+    from ..dataset import rig_names, steps_per_frame, synthesize_capture
     from ..scene import CaptureConfig
 
     if (out is None) == (build is None):

@@ -45,3 +45,6 @@ from ._sources import CaptureSource as CaptureSource
 from ._sources import EmbeddedSource as EmbeddedSource
 from ._sources import FrameSource as FrameSource
 from ._sources import as_source as as_source
+from ._synthesize import rig_names as rig_names
+from ._synthesize import steps_per_frame as steps_per_frame
+from ._synthesize import synthesize_capture as synthesize_capture

@@ -29,7 +29,7 @@ from ..pipeline import (
 from ._layout import FISHEYE_CAMERAS
 
 
-class FrameSource(Protocol):
+class FrameSource(Protocol):  # the builder's view of a source
     """What the builder needs of a source of frames.
 
     - `frames`: the frame numbers it can give; `cameras`: fisheye names (in dataset order);
@@ -57,9 +57,14 @@ def _sha(data: bytes) -> str:
 
 
 def as_source(source) -> FrameSource:
-    """A `FrameSource` of ``source``: itself, or a `CaptureSource` of a capture directory path."""
+    """A `FrameSource` of ``source``: itself, a `CaptureSource` of a capture directory path, or of
+    an open `jaxfish.io.CaptureReader` (reading through that reader)."""
+    from ..io import CaptureReader
+
     if isinstance(source, (str, os.PathLike)):
         return CaptureSource(source)
+    if isinstance(source, CaptureReader):
+        return CaptureSource.of_reader(source)
     return source
 
 
@@ -87,6 +92,13 @@ class CaptureSource:
         self._rig = None
         _ = self.reader  # a missing or malformed header raises here
 
+    @classmethod
+    def of_reader(cls, reader) -> CaptureSource:
+        """The source reading through an open `jaxfish.io.CaptureReader` (its header as read)."""
+        source = cls.__new__(cls)
+        source.root, source.reuse_decoded, source._reader, source._rig = reader.root, False, reader, None
+        return source
+
     def __getstate__(self) -> dict[str, Any]:
         return {"root": self.root, "reuse_decoded": self.reuse_decoded}
 
@@ -105,22 +117,27 @@ class CaptureSource:
 
     @property
     def frames(self) -> list[int]:
+        """The frame numbers of the capture (``capture.json`` field ``frames``)."""
         return self.reader.frames
 
     @property
     def cameras(self) -> list[str]:
+        """The fisheye camera names, in dataset order (FV, RV, MVL, MVR, then others)."""
         return _dataset_order(self.reader.cameras)
 
     @property
     def faces(self) -> tuple[str, ...]:
+        """The cube faces rendered per camera, in `jaxfish.reprojection.CubeRig` order."""
         return tuple(self.reader.faces)
 
     @property
     def face_size(self) -> int:
+        """The cube faces' side in pixels (0 when the header does not say)."""
         return int(self.reader.meta.get("face_size", 0))
 
     @property
     def carla_tags(self) -> str:
+        """The capture's semantic tag table (``carla_semantic_tags``)."""
         return str(self.reader.meta.get("carla_semantic_tags", "0.9.10"))
 
     @property
@@ -146,6 +163,7 @@ class CaptureSource:
         return bev_sensor(self.reader) if self.has_bev() else None
 
     def calibration_path(self, camera: str) -> Path:
+        """The calibration file of ``camera``."""
         return self.root / "calibration" / f"{camera}.json"
 
     def fingerprint(self) -> dict[str, str]:
@@ -259,7 +277,7 @@ def _json_copy(obj: Any) -> Any:
 
 class EmbeddedSource:
     """The embedded street scene (`jaxfish.scene`) rendered in memory, frame by frame: the frames
-    `jaxfish.io.synthesize_capture` would write for ``rig``, ``seed`` and ``config``
+    `synthesize_capture` would write for ``rig``, ``seed`` and ``config``
     (frames ``0 .. frames - 1``), with the same CARLA encodings and quantisation and the
     calibrations as their JSON files give them back, without writing or decoding any file. The
     front perspective view (not part of the dataset) is not rendered."""
@@ -282,20 +300,25 @@ class EmbeddedSource:
 
     @property
     def faces(self) -> tuple[str, ...]:
+        """The cube faces rendered per camera (the capture settings')."""
         return tuple(self.config.faces)
 
     @property
     def face_size(self) -> int:
+        """The cube faces' side in pixels."""
         return int(self.config.face_size)
 
     carla_tags = "0.9.10"
+    """The embedded scene's semantic tag table."""
     where = "<embedded scene>"
+    """How errors name the source."""
 
     def rig(self) -> dict[str, Calibration]:
         """The calibrations as their JSON files give them back, in `cameras` order."""
         return dict(self._rig)
 
     def has_bev(self) -> bool:
+        """The embedded scene always has its BEV top view."""
         return True
 
     def _mounts(self):
@@ -334,6 +357,7 @@ class EmbeddedSource:
         return _sha(f"embedded frame {int(index)}".encode())
 
     def constants_key(self) -> tuple:
+        """What the rig constants depend on: the scene settings and calibrations."""
         return ("embedded", tuple(sorted(self.fingerprint().items())))
 
     def describe(self) -> dict[str, Any]:

@@ -13,8 +13,9 @@ from typer.testing import CliRunner
 
 import jaxfish as jf
 from jaxfish import bev
+from jaxfish.bev import bev_metadata
 from jaxfish.cli import app
-from jaxfish.io import bev_metadata, read_bev_metadata, read_label_png, write_label_png
+from jaxfish.io import read_bev_metadata, read_label_png, write_label_png
 from tests.bev.conftest import render
 from tests.bev.small_capture import BEV_MPP, BEV_SIZE, CAM_H, CAM_W, shared_bev_capture
 

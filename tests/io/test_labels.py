@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from jaxfish import ImageError
+from jaxfish.dataset import synwoodscape_palette_dict
+from jaxfish.dataset._sink import boxes_2d_rows
 from jaxfish.io import (
-    boxes_2d_rows,
     read_boxes_2d_csv,
     read_boxes_3d_pickle,
     read_displacements,
     read_image,
     read_label_png,
     read_palette,
-    synwoodscape_palette_dict,
     write_boxes_2d_csv,
     write_boxes_3d_pickle,
     write_color_png,
