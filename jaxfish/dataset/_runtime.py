@@ -75,9 +75,8 @@ def share_cores(client) -> dict[str, tuple[int, ...]]:
     Linux, or one worker sharing all cores).
 
     Why: each worker runs its own decode threads, write threads and XLA thread pool, all sized for
-    the whole machine; two unpinned workers on 2 cores contend for both and built 0.30 samples/s,
-    one core each built 0.35 (``scripts/bench_build.py``). Don't call it for thread workers: they
-    share one process."""
+    the whole machine, so unpinned workers contend for every core (measured in
+    ``docs/performance.md``). Don't call it for thread workers: they share one process."""
     if not hasattr(os, "sched_setaffinity"):  # pragma: no cover - not Linux
         return {}
     info = client.scheduler_info()["workers"]
