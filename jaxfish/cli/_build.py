@@ -171,7 +171,7 @@ def build(
     write_threads: int = typer.Option(2, "--write-threads", help="Threads writing files (0 = write inline)."),
     motion_threshold_m: float = typer.Option(0.5, "--motion-threshold", help="Motion-mask threshold (metres)."),
     png_level: int = typer.Option(1, "--png-level", min=0, max=9,
-                                  help="zlib level of every PNG: 1 fastest, 6-9 ~30 % smaller PNGs, 2-4x slower."),
+                                  help="zlib level of every PNG: 1 fastest; higher levels write smaller PNGs more slowly."),
     batch_frames: int = typer.Option(1, "--batch-frames", min=1,
                                      help="Consecutive samples per batched ground-truth call (one vmapped program on a GPU)."),
     rebuild: bool = typer.Option(False, "--rebuild",

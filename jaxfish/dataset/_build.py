@@ -650,7 +650,7 @@ def local_cluster(workers: int, *, processes: bool = True):
 
     Dask's nannies export ``MALLOC_TRIM_THRESHOLD_=65536`` to their workers, which turns off
     glibc's dynamic mmap threshold: every image-sized buffer then becomes a fresh, page-faulting
-    mapping, and a sample took 1.75x the CPU time of a serial build. These workers keep glibc's
+    mapping, which multiplies a sample's CPU time (docs/performance.md). These workers keep glibc's
     defaults. No dashboard; the scheduler's HTTP routes (health, metrics) take a free port, not
     dask's 8787 (another cluster on this machine would make dask warn on stderr).
 

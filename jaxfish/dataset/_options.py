@@ -38,11 +38,11 @@ class BuildOptions:
     records them): ``backward_flow`` also writes ``optical_flow_backward`` (t -> t-1 on the t
     grid); ``bev`` builds the top-view camera's files when the capture has one;
     ``motion_threshold_m`` is the motion-mask threshold on the actor displacement;
-    ``png_level`` is the zlib level (0-9) of every PNG (1: fastest; 6-9: ~30 % smaller PNGs, 2-4x
-    slower to write); ``write_threads`` writes files in a thread pool while the next camera computes
-    (0 = inline); ``tune_allocator`` applies `tune_allocator` in the processes that build samples
-    (off by default: no measurable gain for a whole build, whose time is mostly I/O, and 1 GB more
-    peak memory; applied anyway in a process whose environment sets ``MALLOC_TRIM_THRESHOLD_``,
+    ``png_level`` is the zlib level (0-9) of every PNG (1: the fastest; higher levels write smaller
+    PNGs more slowly, see docs/performance.md); ``write_threads`` writes a sample's files in a pool
+    of that many threads (0 = inline); ``tune_allocator`` applies `tune_allocator` in the processes
+    that build samples (off by default: a whole build, whose time is mostly I/O, gains no measurable
+    time and peaks higher in memory; applied anyway in a process whose environment sets ``MALLOC_TRIM_THRESHOLD_``,
     as dask's nannies do, where glibc's dynamic mmap threshold is already off); ``batch_frames``
     computes the fisheye ground truth of that many consecutive samples in one batched call
     (`build_samples`; one dask task each): no faster on CPU, where the cameras and frames are

@@ -523,7 +523,7 @@ class CaptureReader:
     def faces_stack(self, frame: int, camera: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """All faces of a camera stacked on a leading face axis (the `CubeRig` order of `faces`);
         ``actor_ids=False`` skips the instance PNGs (`CameraImages.actor_id` None)."""
-        # Decoding PNGs releases the GIL: reading the faces in threads is ~1.7x faster on 2 cores.
+        # Decoding PNGs releases the GIL, so the faces are read in a thread pool.
         with concurrent.futures.ThreadPoolExecutor(max(1, min(len(self.faces), os.cpu_count() or 1))) as pool:
             imgs = list(pool.map(lambda f: self.face(frame, camera, f, instant, actor_ids=actor_ids), self.faces))
         return CameraImages(*(None if getattr(imgs[0], k) is None else np.stack([getattr(i, k) for i in imgs])

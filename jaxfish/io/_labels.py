@@ -171,8 +171,8 @@ DEPTH_ATTRIBUTE = "jaxfish:depth"
 
 
 def write_depth_exr(path: str | os.PathLike, depth_m: np.ndarray, definition: Mapping[str, Any] | None = None) -> Path:
-    """Depth map as a one-channel float32 OpenEXR (channel ``Z``, uncompressed: 3x faster to write
-    than zip for 20 % more bytes), with ``definition`` (JSON-able: what the values are) stored as
+    """Depth map as a one-channel float32 OpenEXR (channel ``Z``, uncompressed: faster to write
+    than zip, for larger files; figures in docs/performance.md), with ``definition`` (JSON-able: what the values are) stored as
     the text attribute `DEPTH_ATTRIBUTE`; atomic. Read it back with `read_depth_exr`."""
     d = np.asarray(depth_m, np.float32)
     if d.ndim != 2:
