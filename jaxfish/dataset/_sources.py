@@ -44,7 +44,9 @@ class FrameSource(Protocol):  # the builder's view of a source
     frames: list[int]
     cameras: list[str]
 
-    def read(self, index: int, *, bev: bool = True) -> Frame: ...
+    def read(self, index: int, *, bev: bool = True) -> Frame:
+        """The `Frame` of frame ``index`` (with the BEV view when ``bev`` and the source has one)."""
+        ...
 
 
 def _dataset_order(names) -> list[str]:

@@ -96,7 +96,9 @@ def test_each_stage_of_a_sample_runs_once(small_capture, reference_build, tmp_pa
     assert report.ok, report.summary()
     assert sorted(calls["actors"]) == [0, 1] and sorted(calls["ego"]) == [0, 1]
     assert calls["constants"] == [1] and calls["truth"] == [[0], [1]]
-    assert len(calls["files"]) == len(set(calls["files"])) == len(tree_bytes(out)) - 3  # not .done/*, dataset.json
+    listed = {rel for f in (0, 1) for rel in json.loads((out / f".done/0000{f}.json").read_text())["files"]}
+    assert len(calls["files"]) == len(set(calls["files"])) == len(listed)  # every sample file written once
+    assert {p.relative_to(out).as_posix() for p in calls["files"]} == listed
     assert tree_bytes(out) == tree_bytes(reference_build[0])
 
 
