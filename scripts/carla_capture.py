@@ -26,6 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from jaxfish import JaxfishError, default_rig, load_rig
+from jaxfish.dataset import rig_names
 from jaxfish.io import (
     CarlaCaptureError,
     CarlaExposure,
@@ -59,7 +60,6 @@ from jaxfish.io import (
     write_capture_header,
     write_carla_frame,
 )
-from jaxfish.io._capture import rig_names
 from jaxfish.scene import CaptureConfig, front_camera, sensor_mounts
 
 DT_S = 0.1  # 10 FPS, SynWoodScape's rate

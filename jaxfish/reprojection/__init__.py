@@ -12,6 +12,7 @@ from ._cube import warn_undersampled_faces as warn_undersampled_faces
 from ._lut import Lut as Lut
 from ._lut import build_lut as build_lut
 from ._lut import centre_sample as centre_sample
+from ._lut import compiled_build_lut as compiled_build_lut
 from ._lut import lut_from_map as lut_from_map
 from ._lut import ring_positions as ring_positions
 from ._lut import stack_luts as stack_luts

@@ -12,6 +12,7 @@ import pytest
 
 import jaxfish as jf
 from jaxfish.cameras import Orthographic
+from jaxfish.dataset import synthesize_capture
 from jaxfish.io import (
     DVS_EVENT_DTYPE,
     CaptureReader,
@@ -49,7 +50,6 @@ from jaxfish.io import (
     semantic_lidar_to_records,
     sensor_carla_mounts,
     set_blueprint_attributes,
-    synthesize_capture,
     validate_weather,
     with_bev_altitude,
     write_capture_header,
