@@ -17,7 +17,7 @@ from ..cameras import AbstractCamera, Orthographic
 from ..groundtruth import FAR_RANGE_M
 from ..transforms import Pose
 from ._cameras import rig_rays, stack_cameras, stack_poses
-from ._grid import OCCUPANCY_MIN_HEIGHT_M, _check_down, bev_ground_points
+from ._grid import OCCUPANCY_MIN_HEIGHT_M, bev_ground_points, check_looks_down
 
 HEIGHT_QUANTUM_M = 1e-3
 """Heights are stored in the fusion z-buffer in steps of this many metres (1 mm)."""
@@ -111,7 +111,7 @@ def fuse_cameras(
         raise ValueError(f"fuse_cameras: semantic must be integer {r.shape}, got {sem.dtype} {sem.shape}")
     if (cam.height, cam.width) != r.shape[1:]:
         raise ValueError(f"fuse_cameras: range maps {r.shape[1:]} do not match the cameras' images {(cam.height, cam.width)}")
-    _check_down(bev_camera_to_vehicle, "fuse_cameras: bev_camera_to_vehicle")
+    check_looks_down(bev_camera_to_vehicle, "fuse_cameras: bev_camera_to_vehicle")
     ok_valid = jnp.ones(r.shape, bool) if valid is None else jnp.asarray(valid, bool)
     if ok_valid.shape != r.shape:
         raise ValueError(f"fuse_cameras: valid must be {r.shape}, got {ok_valid.shape}")
