@@ -240,3 +240,35 @@ def test_no_module_imports_a_private_name_of_another():
                 offenders.append(f"{path.relative_to(ROOT.parent)}:{node.lineno} uses {ast.unparse(node)}")
     assert not offenders, "private names used across modules (make them public in their module):\n" + "\n".join(offenders)
 
+
+
+# ------------------------------------------------------------------ one definition each
+def test_the_far_depth_and_the_dvs_dtype_are_defined_once():
+    import numpy as np
+
+    import jaxfish.groundtruth
+    import jaxfish.io
+    import jaxfish.reprojection
+    import jaxfish.scene
+    from jaxfish import _constants
+
+    for alias in (jaxfish.reprojection.FAR_DEPTH_M, jaxfish.groundtruth.FAR_RANGE_M, jaxfish.scene.FAR_M,
+                  jaxfish.io.CARLA_MAX_DEPTH_M):
+        assert alias is _constants.FAR_DEPTH_M
+    assert jaxfish.io.DVS_EVENT_DTYPE is _constants.DVS_EVENT_DTYPE and jaxfish.scene.DVS_DTYPE is _constants.DVS_EVENT_DTYPE
+    assert _constants.FAR_DEPTH_M == 1000.0 and _constants.DVS_EVENT_DTYPE == np.dtype(
+        [("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("pol", "?")])
+    redefined = []
+    for m, path in MODULES.items():
+        if m == "jaxfish._constants":
+            continue
+        tree = ast.parse(path.read_text())
+        for node in tree.body:  # module-level names bound to the far depth's literal
+            if isinstance(node, (ast.Assign, ast.AnnAssign)) and isinstance(node.value, ast.Constant) \
+                    and node.value.value == _constants.FAR_DEPTH_M:
+                redefined.append(f"{path.relative_to(ROOT.parent)}:{node.lineno} {ast.unparse(node)}")
+        for node in ast.walk(tree):  # any dtype built with the DVS fields
+            if isinstance(node, ast.Call) and ast.unparse(node.func).endswith("dtype") and any(
+                    isinstance(c, ast.Constant) and c.value == "pol" for c in ast.walk(node)):
+                redefined.append(f"{path.relative_to(ROOT.parent)}:{node.lineno} {ast.unparse(node)}")
+    assert not redefined, redefined

@@ -12,9 +12,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._constants import FAR_DEPTH_M
 from .._numerics import materialize
 from ..cameras import AbstractCamera, Orthographic
-from ..groundtruth import FAR_RANGE_M
 from ..transforms import Pose
 from ._cameras import rig_rays, stack_cameras, stack_poses
 from ._grid import OCCUPANCY_MIN_HEIGHT_M, bev_ground_points, check_looks_down
@@ -83,7 +83,7 @@ def fuse_cameras(
     *,
     valid: Bool[ArrayLike, "N H W"] | None = None,
     rays: tuple[Float[ArrayLike, "N H W 3"], Bool[ArrayLike, "N H W"]] | None = None,
-    far_m: float = FAR_RANGE_M,
+    far_m: float = FAR_DEPTH_M,
     occupancy_min_height_m: float = OCCUPANCY_MIN_HEIGHT_M,
 ) -> BevFusion:
     """Fuse N cameras' range and semantic maps into the top view of ``bev_camera`` (mounted by
@@ -193,7 +193,7 @@ def fuse_cameras_dense(
     *,
     valid: Bool[ArrayLike, "N H W"] | None = None,
     rays: tuple[Float[ArrayLike, "N H W 3"], Bool[ArrayLike, "N H W"]] | None = None,
-    far_m: float = FAR_RANGE_M,
+    far_m: float = FAR_DEPTH_M,
     occupancy_min_height_m: float = OCCUPANCY_MIN_HEIGHT_M,
     fill_radius: int = GATHER_FILL_RADIUS,
     range_tolerance: float = GATHER_RANGE_TOLERANCE,

@@ -14,8 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
+from .._constants import FAR_DEPTH_M
 from ..cameras import Orthographic
-from ..groundtruth import FAR_RANGE_M, apply_pose
+from ..groundtruth import apply_pose
 from ..transforms import Pose
 
 OCCUPANCY_MIN_HEIGHT_M = 0.2
@@ -98,7 +99,7 @@ def height_map(
     camera_to_vehicle: Pose,
     range_m: Float[ArrayLike, "H W"],
     *,
-    far_m: float = FAR_RANGE_M,
+    far_m: float = FAR_DEPTH_M,
 ) -> Float[Array, "H W"]:
     """Height (metres above the vehicle's ground plane z = 0) of the surface each BEV pixel sees,
     from the BEV depth (distance from the image plane along the ray; CARLA's planar depth of an

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._constants import FAR_DEPTH_M
 from .._numerics import materialize
 from ..cameras import AbstractCamera
 from ..reprojection import Lut, resample_bilinear, resample_depth, resample_nearest
@@ -17,7 +18,7 @@ from ..transforms import Pose
 from ._boxes2d import Boxes2D, boxes_from_instances, boxes_from_surfaces
 from ._boxes3d import Boxes3D
 from ._classes import carla_to_synwoodscape
-from ._flow import FAR_RANGE_M, FlowField, analytic_flow, apply_pose, pixel_points, pixel_rays, rigid_motion
+from ._flow import FlowField, analytic_flow, apply_pose, pixel_points, pixel_rays, rigid_motion
 from ._instances import (
     BOX_MARGIN_M,
     FALLBACK_DISTANCE_M,
@@ -51,7 +52,7 @@ def fisheye_images(
     tags) to the fisheye through ``lut`` with `resample_bilinear`, `resample_depth` and
     `resample_nearest` (``reduce="centre"`` for labels so they match the depth's centre sample)."""
     rgb, valid = resample_bilinear(jnp.asarray(faces_rgb), lut)
-    rng, _ = resample_depth(jnp.asarray(faces_depth_m, jnp.float32), lut, far_m=FAR_RANGE_M)
+    rng, _ = resample_depth(jnp.asarray(faces_depth_m, jnp.float32), lut, far_m=FAR_DEPTH_M)
     tag, _ = resample_nearest(jnp.asarray(faces_tag), lut, reduce="centre")
     return FisheyeImages(rgb=rgb, range_m=rng, tag=tag.astype(jnp.int32), valid=valid)
 
@@ -69,7 +70,7 @@ def range_to_z_depth(
     else:
         rays, ok = jnp.asarray(rays[0]), jnp.asarray(rays[1], bool)
     z = r * rays[..., 2].astype(r.dtype)
-    z = jnp.where(r >= FAR_RANGE_M, jnp.asarray(FAR_RANGE_M, r.dtype), z)
+    z = jnp.where(r >= FAR_DEPTH_M, jnp.asarray(FAR_DEPTH_M, r.dtype), z)
     return jnp.where(ok, z, 0.0)
 
 
@@ -239,7 +240,7 @@ def _jit_view_images(camera, rays, rgb, depth_m, tag):
     rz = r[..., 2]
     good = ok & (rz > 0)
     rng = jnp.where(good, z / jnp.where(good, rz, 1.0), 0.0)
-    rng = jnp.where(z >= FAR_RANGE_M, FAR_RANGE_M, rng)
+    rng = jnp.where(z >= FAR_DEPTH_M, FAR_DEPTH_M, rng)
     return FisheyeImages(rgb=rgb, range_m=rng.astype(jnp.float32), tag=tag.astype(jnp.int32), valid=good)
 
 
