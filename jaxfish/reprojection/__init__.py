@@ -1,5 +1,6 @@
 """Reprojection: cube rigs, lookup tables between cameras, and resampling kernels."""
 
+from .._constants import FAR_DEPTH_M as FAR_DEPTH_M
 from ._cube import CUBE_FACE_ROTATIONS as CUBE_FACE_ROTATIONS
 from ._cube import FIVE_FACES as FIVE_FACES
 from ._cube import SIX_FACES as SIX_FACES
@@ -18,7 +19,6 @@ from ._lut import ring_positions as ring_positions
 from ._lut import stack_luts as stack_luts
 from ._lut import supersample_offsets as supersample_offsets
 from ._resample import DEPTH_AGREEMENT_REL_TOL as DEPTH_AGREEMENT_REL_TOL
-from ._resample import FAR_DEPTH_M as FAR_DEPTH_M
 from ._resample import pad_faces as pad_faces
 from ._resample import resample_bilinear as resample_bilinear
 from ._resample import resample_depth as resample_depth
