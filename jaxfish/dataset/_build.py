@@ -36,7 +36,7 @@ from ._options import BuildInterrupted as BuildInterrupted
 from ._options import BuildOptions as BuildOptions
 from ._options import BuildReport as BuildReport
 from ._options import DatasetError as DatasetError
-from ._options import _span
+from ._options import sample_span
 from ._runtime import BUILD_PID_ENV, share_cores, tune_allocator
 from ._sink import LayoutSink, write_sensor_files
 from ._sources import CaptureSource, FrameSource, as_source
@@ -138,8 +138,8 @@ def _outdated_error(out: Path, outdated: dict[str, list[str]]) -> DatasetError:
             elif d not in reasons:
                 reasons.append(d)
     if frames:
-        reasons.append("the capture's " + _span(frames) + (" differ" if len(frames) > 1 else " differs"))
-    return DatasetError(f"{out}: sample(s) {_span(list(outdated))} were made from another capture or with other "
+        reasons.append("the capture's " + sample_span(frames) + (" differ" if len(frames) > 1 else " differs"))
+    return DatasetError(f"{out}: sample(s) {sample_span(list(outdated))} were made from another capture or with other "
                         f"options ({'; '.join(reasons)}); rebuild them (jaxfish build --rebuild, "
                         f"build_dataset(..., rebuild=True)) or build into another folder")
 

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ._layout import BEV_CAMERA, DATASET_FILES, LAYOUT, LAYOUT_VERSION
+from .._constants import FAR_DEPTH_M
 from ._options import DONE_DIR, BuildOptions, DatasetError
 
 DATASET_FORMAT = "jaxfish-synwoodscape"
@@ -80,7 +81,7 @@ def dataset_manifest(source, out_dir: str | os.PathLike, options: BuildOptions |
             "depth": {"raw_data": "Euclidean range along each pixel's ray, metres, float32 (not planar z-depth)",
                       "exr": "depth_maps/exr: the raw_data range as a one-channel (Z) float32 OpenEXR",
                       "z_depth": "planar depth along the camera's optical axis = range x ray_z, metres, float32",
-                      "sky_m": 1000.0, "no_ray": 0.0, "colormap_range_m": list(DEPTH_COLOR_RANGE_M)},
+                      "sky_m": FAR_DEPTH_M, "no_ray": 0.0, "colormap_range_m": list(DEPTH_COLOR_RANGE_M)},
             "optical_flow": {"direction": "forward: from t-1 to t", "grid": "defined on the t-1 pixel grid",
                              "definition": "flow = uv_t - uv_(t-1) in pixels, u right, v down",
                              "valid": "the point stays in the image and is not occluded at t; invalid pixels "

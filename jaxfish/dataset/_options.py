@@ -123,12 +123,13 @@ class BuildReport:
                  f"of {len(self.samples)} sample(s) in {self.seconds:.1f} s ({rate}) -> {self.out_dir}"]
         if self.replaced:
             lines.append(f"  {len(self.replaced)} sample(s) made from another capture or with other options "
-                         f"were removed first (rebuild): {_span(self.replaced)}")
+                         f"were removed first (rebuild): {sample_span(self.replaced)}")
         lines += [f"  sample {s} failed: {r}" for s, r in sorted(self.failed.items())]
         return "\n".join(lines)
 
 
 
-def _span(samples) -> str:
+def sample_span(samples) -> str:
+    """The first five of ``samples`` (sorted), comma-separated, and how many more."""
     samples = sorted(samples)
     return ", ".join(samples[:5]) + (f" and {len(samples) - 5} more" if len(samples) > 5 else "")

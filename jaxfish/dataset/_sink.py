@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from .._constants import FAR_DEPTH_M
 from .._errors import ImageError
 from ..groundtruth import SYNWOODSCAPE_CLASSES, SYNWOODSCAPE_PALETTE
 from ..io import (
@@ -39,7 +40,7 @@ from ..pipeline import BevTruth, CameraTruth, SampleTruth, SensorRecords
 from ._layout import BEV_CAMERA
 
 RANGE_DEPTH_DEFINITION = {"quantity": "Euclidean range along the pixel's ray (not planar z-depth)", "unit": "m",
-                          "sky_m": 1000.0, "no_ray": 0.0, "instant": "t"}
+                          "sky_m": FAR_DEPTH_M, "no_ray": 0.0, "instant": "t"}
 """What the dataset's depth EXRs hold (their `jaxfish.io.DEPTH_ATTRIBUTE` metadata)."""
 
 def synwoodscape_palette_dict() -> dict[str, Any]:

@@ -71,7 +71,8 @@ def _json(path: Path, obj: Any) -> None:
     write_json(path, obj, indent=2, error=CaptureError)
 
 
-def _npy(path: Path, arr: np.ndarray) -> None:
+def write_npy(path: Path, arr: np.ndarray) -> None:
+    """Write ``arr`` as ``.npy`` (C order, no pickle), atomically."""
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.save(fh, np.ascontiguousarray(arr), allow_pickle=False)
 
@@ -268,14 +269,14 @@ def write_frame(
             fd = d / "cameras" / cam / face
             write_images(fd, cap.prev[face], "prev")
             write_images(fd, cap.curr[face], "curr")
-            _npy(fd / "dvs.npy", np.asarray(cap.dvs[face]).astype(DVS_EVENT_DTYPE))
+            write_npy(fd / "dvs.npy", np.asarray(cap.dvs[face]).astype(DVS_EVENT_DTYPE))
     for name, (prev, curr, height) in views.items():
         write_images(d / name, prev, "prev")
         write_images(d / name, curr, "curr")
         write_image(d / name / "height_curr.exr", np.asarray(height, np.float32))
-    _npy(d / "lidar.npy", np.asarray(lidar, np.float32))
-    _npy(d / "semantic_lidar.npy", np.asarray(semantic_lidar).astype(SEMANTIC_LIDAR_DTYPE))
-    _npy(d / "radar.npy", np.asarray(radar).astype(RADAR_DTYPE))
+    write_npy(d / "lidar.npy", np.asarray(lidar, np.float32))
+    write_npy(d / "semantic_lidar.npy", np.asarray(semantic_lidar).astype(SEMANTIC_LIDAR_DTYPE))
+    write_npy(d / "radar.npy", np.asarray(radar).astype(RADAR_DTYPE))
     _json(d / "imu.json", dict(imu))
     _json(d / "gnss.json", dict(gnss))
     _json(d / "ego.json", ego_record(frame))

@@ -45,7 +45,7 @@ from ..scene import (
 )
 from ..transforms import CARLA_TO_ISO, UNREAL_CAMERA_TO_OPENCV, Pose, carla_rotation_matrix
 from ._atomic import atomic_path, atomic_write_text
-from ._capture import _npy, frame_dir, write_frame
+from ._capture import frame_dir, write_frame, write_npy
 from ._carla import CARLA_MAX_DEPTH_M, DVS_EVENT_DTYPE, decode_semantic, encode_instance
 from ._images import write_image
 from ._json import to_json_text, write_json
@@ -743,7 +743,7 @@ def write_carla_frame(
             ev = np.asarray(events)
             if ev.dtype != DVS_EVENT_DTYPE:
                 raise CarlaCaptureError(f"{cam}/{face}: DVS events must have DVS_EVENT_DTYPE, got {ev.dtype}")
-            _npy(fd / "dvs.npy", ev)
+            write_npy(fd / "dvs.npy", ev)
     for name, (prev, curr, height) in views.items():
         _write_raw_images(d / name, prev, "prev", name, before / name if before is not None else None)
         _write_raw_images(d / name, curr, "curr", name)

@@ -7,8 +7,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .._constants import DVS_EVENT_DTYPE
 from ..groundtruth import EventMap
-from ..scene import DVS_DTYPE
 
 
 def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.ndarray, x: np.ndarray, y: np.ndarray,
@@ -35,7 +35,7 @@ def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.nd
     flat = tg_all[src[ev_idx], slot]
     tt = np.asarray(t, np.int64)[ev_idx]
     order = np.argsort(tt, kind="stable")
-    out = np.empty(order.shape[0], DVS_DTYPE)
+    out = np.empty(order.shape[0], DVS_EVENT_DTYPE)
     out["x"], out["y"] = flat[order] % width, flat[order] // width
     out["t"], out["pol"] = tt[order], np.asarray(pol, bool)[ev_idx][order]
     return out
