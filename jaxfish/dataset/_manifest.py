@@ -11,8 +11,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ._layout import BEV_CAMERA, DATASET_FILES, LAYOUT, LAYOUT_VERSION
 from .._constants import FAR_DEPTH_M
+from ._layout import BEV_CAMERA, DATASET_FILES, LAYOUT, LAYOUT_VERSION
 from ._options import DONE_DIR, BuildOptions, DatasetError
 
 DATASET_FORMAT = "jaxfish-synwoodscape"
