@@ -101,3 +101,18 @@ def test_double_sphere_conversion_reaches_the_best_of_an_explicit_multi_start(na
     assert -0.3 < float(res.camera.xi) < -0.15 and 0.4 < float(res.rms_px) < 0.6
     neutral = convert_camera(ws, initial_camera(ws, "ds", theta_top=kw["theta_max"]), **kw)
     assert float(neutral.camera.xi) > 0.2 and float(neutral.rms_px) > float(res.rms_px) + 0.1  # the local minimum
+
+
+@pytest.mark.parametrize("model", ["eucm", "ucm"])
+def test_unified_conversions_are_no_worse_than_an_explicit_multi_start(model):
+    ws = jf.load_calibration(shared_path("calibration/synwoodscape/FV.json")).camera
+    kw = dict(fov="image", n_theta=24, n_phi=16)
+    res = convert_camera(ws, model, **kw)
+    cx, cy = (float(x) for x in np.asarray(ws.principal_point))
+    if model == "eucm":
+        inits = [jc.ExtendedUnifiedCamera(330.0, 330.0, cx, cy, a, b, width=ws.width, height=ws.height)
+                 for a in (0.3, 0.5, 0.7) for b in (0.5, 1.0, 2.0)]
+    else:
+        inits = [jc.UnifiedCamera(330.0, 330.0, cx, cy, a, width=ws.width, height=ws.height) for a in (0.2, 0.5, 0.8)]
+    best = min((convert_camera(ws, init, **kw) for init in inits), key=lambda r: float(r.rms_px))
+    assert int(res.num_target_invalid) == 0 and float(res.rms_px) <= float(best.rms_px) * (1 + 1e-6)
