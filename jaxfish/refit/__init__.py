@@ -1,11 +1,15 @@
 """Refitting and converting lens calibrations: least squares on jaxfish's differentiable cameras."""
 
 from ._convert import BEHIND_AXIS_MARGIN_RAD as BEHIND_AXIS_MARGIN_RAD
+from ._convert import NUM_STARTS as NUM_STARTS
+from ._convert import SHAPE_GRIDS as SHAPE_GRIDS
 from ._convert import ConversionResult as ConversionResult
 from ._convert import camera_theta_max as camera_theta_max
 from ._convert import convert_camera as convert_camera
+from ._convert import image_pixel_grid as image_pixel_grid
 from ._convert import initial_camera as initial_camera
 from ._convert import sample_rays as sample_rays
+from ._convert import shape_scan_starts as shape_scan_starts
 from ._fit import LOSSES as LOSSES
 from ._fit import Correspondences as Correspondences
 from ._fit import RefitResult as RefitResult
