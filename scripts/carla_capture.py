@@ -26,7 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from jaxfish import JaxfishError, default_rig, load_rig
-from jaxfish.io import (
+from jaxfish.carla import (
     CarlaCaptureError,
     CarlaExposure,
     CarlaImages,
@@ -38,7 +38,6 @@ from jaxfish.io import (
     carla_semantic_tags,
     carla_street_frame,
     carla_transform_tuple,
-    decode_depth,
     dvs_to_events,
     finish_carla_header,
     gnss_to_dict,
@@ -56,8 +55,11 @@ from jaxfish.io import (
     set_blueprint_attributes,
     validate_weather,
     with_bev_altitude,
-    write_capture_header,
     write_carla_frame,
+)
+from jaxfish.io import (
+    decode_depth,
+    write_capture_header,
 )
 from jaxfish.io._capture import rig_names
 from jaxfish.scene import CaptureConfig, front_camera, sensor_mounts

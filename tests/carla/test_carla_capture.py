@@ -12,9 +12,7 @@ import pytest
 
 import jaxfish as jf
 from jaxfish.cameras import Orthographic
-from jaxfish.io import (
-    DVS_EVENT_DTYPE,
-    CaptureReader,
+from jaxfish.carla import (
     CarlaCaptureError,
     CarlaImages,
     bev_pinhole,
@@ -27,13 +25,7 @@ from jaxfish.io import (
     carla_semantic_tags,
     carla_street_frame,
     cube_face_mounts,
-    decode_depth,
-    decode_instance,
-    decode_semantic,
     dvs_to_events,
-    encode_depth,
-    encode_instance,
-    encode_semantic,
     finish_carla_header,
     gnss_to_dict,
     height_from_depth,
@@ -43,17 +35,27 @@ from jaxfish.io import (
     lidar_to_points,
     parse_carla_version,
     radar_to_records,
-    read_image,
     rear_axle_origin,
     rig_on_actor,
     semantic_lidar_to_records,
     sensor_carla_mounts,
     set_blueprint_attributes,
-    synthesize_capture,
     validate_weather,
     with_bev_altitude,
-    write_capture_header,
     write_carla_frame,
+)
+from jaxfish.io import (
+    DVS_EVENT_DTYPE,
+    CaptureReader,
+    decode_depth,
+    decode_instance,
+    decode_semantic,
+    encode_depth,
+    encode_instance,
+    encode_semantic,
+    read_image,
+    synthesize_capture,
+    write_capture_header,
 )
 from jaxfish.reprojection import CUBE_FACE_ROTATIONS, FIVE_FACES, CubeRig
 from jaxfish.scene import (
@@ -805,13 +807,22 @@ def test_dry_run_lists_the_sensors_without_a_server(script, capsys, monkeypatch)
         script.parse_args(["--frames", "3"])  # --out is required for a capture
 
 
-def test_carla_is_imported_only_when_a_capture_runs():
+def test_the_package_imports_without_the_carla_client(monkeypatch):
     import ast
-    import inspect
+    import subprocess
+    import sys
+    from pathlib import Path
 
-    import jaxfish.io._carla_capture as module
+    import jaxfish.carla as package
 
-    tree = ast.parse(inspect.getsource(module))
-    top = [n for n in tree.body if isinstance(n, ast.Import | ast.ImportFrom)]
-    names = [a.name for n in top if isinstance(n, ast.Import) for a in n.names] + [n.module or "" for n in top if isinstance(n, ast.ImportFrom)]
-    assert not [n for n in names if n.split(".")[0] == "carla"]
+    for path in sorted(Path(package.__file__).parent.glob("*.py")):  # no module imports carla at its top
+        tree = ast.parse(path.read_text())
+        top = [n for n in tree.body if isinstance(n, ast.Import | ast.ImportFrom)]
+        names = [a.name for n in top if isinstance(n, ast.Import) for a in n.names] + [n.module or "" for n in top if isinstance(n, ast.ImportFrom)]
+        assert not [n for n in names if n.split(".")[0] == "carla"], path
+    # A fresh interpreter where `import carla` fails still imports the package (the client is an optional extra).
+    code = "import sys; sys.modules['carla'] = None; import jaxfish.carla; assert sys.modules['carla'] is None"
+    subprocess.run([sys.executable, "-c", code], check=True)
+    monkeypatch.setitem(sys.modules, "carla", None)
+    with pytest.raises(CarlaCaptureError, match=r"pip install 'jaxfish\[carla\]'"):
+        package.import_carla()
