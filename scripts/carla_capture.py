@@ -21,6 +21,7 @@ import queue
 import random
 import sys
 import time
+import warnings
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -58,10 +59,13 @@ from jaxfish.carla import (
     write_carla_frame,
 )
 from jaxfish.io import (
+    check_capture_folder,
     decode_depth,
     write_capture_header,
 )
 from jaxfish.io._capture import rig_names
+from jaxfish.io._folder import folder_lock, remove_temporaries
+from jaxfish.reprojection import UndersampledFacesWarning, warn_undersampled_faces
 from jaxfish.scene import CaptureConfig, front_camera, sensor_mounts
 
 DT_S = 0.1  # 10 FPS, SynWoodScape's rate
@@ -91,7 +95,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="where the calibration's vehicle origin is in the ego actor frame: 'auto' (rear axle on the "
                         "ground for WoodScape-flavour files, the actor origin for SynWoodScape ones), 'actor', or 'X,Y,Z' "
                         "metres in CARLA axes")
-    p.add_argument("--face-size", type=int, default=768, help="cube face side S in pixels (fov 90)")
+    p.add_argument("--face-size", type=int, default=1152,
+                   help="cube face side S in pixels (fov 90); a size that undersamples the rig's fisheyes is warned about")
     p.add_argument("--bev-size", type=int, default=1024, help="BEV image side in pixels")
     p.add_argument("--bev-metres-per-pixel", type=float, default=0.04, help="BEV ground resolution")
     p.add_argument("--bev-altitude", type=float, default=500.0, help="height of the BEV pinhole above the ego (m)")
@@ -402,12 +407,34 @@ def dry_run(args, rig) -> None:
         print(f"{'/'.join(spec.key):28s} {spec.blueprint:38s} location ({loc}) rotation ({rot}) {attrs}")
 
 
+def warn_undersampled(face_size: int, rig) -> None:
+    """``warning: ...`` on stderr when ``face_size``-px cube faces undersample one of the rig's
+    fisheyes (`jaxfish.reprojection.warn_undersampled_faces`), as ``jaxfish synth`` warns."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UndersampledFacesWarning)
+        message = warn_undersampled_faces(face_size, {name: calib.camera for name, calib in rig.items()})
+    if message:
+        print(f"warning: {message}", file=sys.stderr)
+
+
 def capture_weather(carla, client, args, weather: str, rig_file) -> Path:
-    """Spawn everything, capture ``args.frames`` frames under ``weather`` into ``OUT/weather``."""
+    """Spawn everything, capture ``args.frames`` frames under ``weather`` into ``OUT/weather``.
+
+    The capture folder must be new, empty or a jaxfish capture (`jaxfish.io.check_capture_folder`);
+    it is locked before anything is spawned and while the capture is written (a second writer
+    raises `CarlaCaptureError`), and the temporary files a killed run left there are removed."""
+    root = check_capture_folder(args.out / weather)
+    root.mkdir(parents=True, exist_ok=True)
+    with folder_lock(root, CarlaCaptureError, "capture writer"):
+        remove_temporaries(root)
+        _capture_locked(carla, client, args, weather, rig_file, root)
+    return root
+
+
+def _capture_locked(carla, client, args, weather: str, rig_file, root: Path) -> None:
     version = client.get_server_version()
     tags = carla_semantic_tags(version)
     config, exposure = capture_config(args), capture_exposure(args)
-    root = args.out / weather
     session = Session(carla, client, args)
     rng = random.Random(args.seed)
     try:
@@ -454,7 +481,6 @@ def capture_weather(carla, client, args, weather: str, rig_file) -> Path:
             writer.shutdown(wait=True)
     finally:
         session.destroy()
-    return root
 
 
 def frame_writer(root, k, prev, curr, session, rig, config, views, tags):
@@ -498,6 +524,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         weathers = validate_weather(args.weather or ["ClearNoon"])
         rig = load_calibrations(args.calibration) if args.calibration else default_rig()
+        warn_undersampled(args.face_size, rig)
         if args.dry_run:
             parse_carla_version(args.carla_version)
             dry_run(args, rig)

@@ -726,6 +726,28 @@ def test_the_program_on_a_fake_carla(script, tmp_path, monkeypatch, capsys):
     assert "weather preset 'Sunny' is unknown" in capsys.readouterr().err
 
 
+def test_a_second_writer_of_a_capture_folder_is_refused(script, tmp_path, monkeypatch, capsys):
+    from jaxfish.io import CaptureError
+    from jaxfish.io._folder import folder_lock
+
+    fake = _FakeCarla("0.9.13")
+    monkeypatch.setattr(script, "import_carla", lambda: fake)
+    folder = tmp_path / "out" / "ClearNoon"
+    folder.mkdir(parents=True)
+    argv = ["--out", str(tmp_path / "out"), "--frames", "1", "--warmup", "2", "--face-size", "8", "--bev-size", "8",
+            "--front-size", "8", "6", "--vehicles", "0", "--walkers", "0", "--vehicle-origin", "actor"]
+    with folder_lock(folder, CaptureError, "capture writer"):  # another writer holds the folder
+        assert script.main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"error: {folder}: another jaxfish capture writer is writing into this folder" in err
+    assert "Traceback" not in err and list(folder.iterdir()) == []  # nothing written
+    assert fake.world.actors == {} and fake.world.next_id == 100  # nothing spawned before the lock failed
+    (folder / "notes.txt").write_text("mine")  # a folder that is not a capture: refused, its file kept
+    assert script.main(argv) == 2
+    assert "not empty and not a jaxfish capture" in capsys.readouterr().err
+    assert [p.name for p in folder.iterdir()] == ["notes.txt"] and fake.world.actors == {}
+
+
 def _session(script, fake, argv):
     return script.Session(fake, fake.Client("h", 1), script.parse_args(["--out", "x", *argv]))
 
@@ -799,9 +821,16 @@ def test_vehicle_origin_option(script):
 def test_dry_run_lists_the_sensors_without_a_server(script, capsys, monkeypatch):
     monkeypatch.setattr(script, "import_carla", lambda: pytest.fail("a dry run must not import carla"))
     assert script.main(["--dry-run", "--carla-version", "0.9.14", "--face-size", "16"]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    printed = capsys.readouterr()
+    lines = printed.out.splitlines()
     assert lines[0] == "113 sensors for CARLA 0.9.14 (tags 0.9.14):" and len(lines) == 114  # 4 x 5 x 5 + 2 x 4 + 5
     assert any(line.startswith("camera/MVL/top/instance") and "image_size_x=16" in line for line in lines)
+    # 16-px faces undersample the default rig's fisheyes: warned about as `jaxfish synth` does.
+    assert printed.err.startswith("warning: cube faces of 16 px undersample") and "at least" in printed.err
+    # The default face size suffices for the default rig: no warning.
+    assert script.main(["--dry-run"]) == 0
+    printed = capsys.readouterr()
+    assert printed.err == "" and "camera/FV/front/rgb" in printed.out and "image_size_x=1152" in printed.out
     assert script.main(["--dry-run", "--carla-version", "0.9.9"]) == 2
     with pytest.raises(SystemExit):
         script.parse_args(["--frames", "3"])  # --out is required for a capture
