@@ -11,12 +11,17 @@ works, which is how the tests drive them). The program's contract is the capture
 - **Sensors**: blueprint attributes and the list of sensors to spawn (`capture_sensor_specs`).
 - **Readings**: CARLA sensor outputs -> the capture's arrays (`image_to_bgra`, `dvs_to_events`, ...).
 - **Records** of actors and the ego (`carla_actor_records`, `carla_ego_motion`, `carla_street_frame`).
-- **Writing** one frame in the capture layout (`write_carla_frame`, `finish_carla_header`).
+- **Writing** one frame in the capture layout (`write_carla_frame`, `finish_carla_header`), or
+  assembling it in memory as a capture reader would decode it (`carla_frame_records`,
+  `carla_frame_sensors`, `CarlaImages.decoded`).
 
 The CARLA pixel codecs (depth, semantic, instance, BGRA, the DVS dtype) are `jaxfish.io`'s: io
 encodes and decodes, this package talks to the simulator. The core never imports it.
 """
 
+from ._frame import carla_frame_records as carla_frame_records
+from ._frame import carla_frame_sensors as carla_frame_sensors
+from ._images import CarlaImages as CarlaImages
 from ._mounts import CarlaMount as CarlaMount
 from ._mounts import bev_pinhole as bev_pinhole
 from ._mounts import bev_pinhole_fov_deg as bev_pinhole_fov_deg
@@ -63,6 +68,5 @@ from ._version import has_instance_camera as has_instance_camera
 from ._version import import_carla as import_carla
 from ._version import parse_carla_version as parse_carla_version
 from ._version import validate_weather as validate_weather
-from ._writer import CarlaImages as CarlaImages
 from ._writer import finish_carla_header as finish_carla_header
 from ._writer import write_carla_frame as write_carla_frame

@@ -3,7 +3,6 @@ of the capture's header."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import shutil
@@ -17,8 +16,6 @@ from ..io import (
     DVS_EVENT_DTYPE,
     atomic_path,
     atomic_write_text,
-    decode_semantic,
-    encode_instance,
     write_events_npy,
     write_frame,
     write_image,
@@ -26,39 +23,20 @@ from ..io import (
 from ..io._capture import frame_dir
 from ..io._json import to_json_text, write_json
 from ..scene import CaptureConfig, StreetFrame
+from ._images import CarlaImages
 from ._mounts import CarlaMount, bev_pinhole_fov_deg
 from ._version import CarlaCaptureError, carla_semantic_tags, has_instance_camera
 
 
-@dataclasses.dataclass(frozen=True)
-class CarlaImages:
-    """One camera's raw CARLA images at one instant, BGRA uint8 ``(H, W, 4)``: `rgb`, `depth`
-    (24-bit encoded), `semantic` (tag in R) and `instance` (0.9.14+; None before)."""
-
-    rgb: np.ndarray
-    depth: np.ndarray
-    semantic: np.ndarray
-    instance: np.ndarray | None = None
-
-
 def _write_raw_images(directory: Path, images: CarlaImages, instant: str, what: str, reuse: Path | None = None) -> None:
-    shape = None
-    for kind in ("rgb", "depth", "semantic", "instance"):
-        a = getattr(images, kind)
-        if a is None:  # no instance camera before 0.9.14: the tag, and actor id 0 (unknown)
-            a = encode_instance(decode_semantic(images.semantic), np.zeros(images.semantic.shape[:2], np.int64))
-        a = np.asarray(a)
-        if a.dtype != np.uint8 or a.ndim != 3 or a.shape[-1] != 4:
-            raise CarlaCaptureError(f"{what}: {kind}_{instant} must be BGRA uint8 (H, W, 4), got {a.dtype} {a.shape}")
-        if shape is not None and a.shape != shape:
-            raise CarlaCaptureError(f"{what}: {kind}_{instant} is {a.shape}, the rgb image {shape}")
-        shape = a.shape
+    images = images.checked(what, instant)  # every image checked before the first is written
+    for kind in CarlaImages.KINDS:
         source = reuse / f"{kind}_curr.png" if reuse is not None else None
         if source is not None and source.is_file():  # the same tick, already encoded: copy its bytes
             with atomic_path(directory / f"{kind}_{instant}.png") as tmp:
                 shutil.copyfile(source, tmp)
         else:
-            write_image(directory / f"{kind}_{instant}.png", a)
+            write_image(directory / f"{kind}_{instant}.png", getattr(images, kind))
 
 
 def write_carla_frame(

@@ -22,6 +22,8 @@ from jaxfish.carla import (
     carla_actor_records,
     carla_angles_from_matrix,
     carla_ego_motion,
+    carla_frame_records,
+    carla_frame_sensors,
     carla_semantic_tags,
     carla_street_frame,
     cube_face_mounts,
@@ -299,8 +301,9 @@ def _fake_world(root, frame):
     return reader, fake_actors[::-1], world, ego  # reversed: the records put the ego first themselves
 
 
-def test_embedded_frame_through_the_carla_path_is_byte_identical(embedded, tmp_path):
-    root, rig = embedded
+def _carla_inputs(root):
+    """The CARLA path's inputs for frame 0 of an embedded capture: fake actors and snapshots through
+    `carla_actor_records`, the raw BGRA images, DVS events, height maps and readings of its files."""
     reader, fake_actors, (snap_prev, snap), ego = _fake_world(root, 0)
     records = carla_actor_records(fake_actors, snap_prev, snap, ego_id=ego["id"], tag_table="0.9.10")
     frame = carla_street_frame(0, ego["timestamp_s"], records, carla_ego_motion(snap.find(ego["id"])),
@@ -320,14 +323,20 @@ def test_embedded_frame_through_the_carla_path_is_byte_identical(embedded, tmp_p
     fake_imu = SimpleNamespace(accelerometer=_vec(imu["accelerometer"]), gyroscope=_vec(imu["gyroscope"]),
                                compass=imu["compass"], timestamp=imu["timestamp_s"])
     fake_gnss = SimpleNamespace(timestamp=gnss["timestamp_s"], **{k: gnss[k] for k in ("latitude", "longitude", "altitude")})
+    sensors = {"lidar": lidar_to_points(reader.lidar(0).tobytes()),
+               "semantic_lidar": semantic_lidar_to_records(reader.semantic_lidar(0).tobytes()),
+               "radar": radar_to_records(reader.radar(0).tobytes()), "imu": imu_to_dict(fake_imu),
+               "gnss": gnss_to_dict(fake_gnss)}
+    return reader, frame, faces, views, sensors, (fake_imu, fake_gnss)
+
+
+def test_embedded_frame_through_the_carla_path_is_byte_identical(embedded, tmp_path):
+    root, rig = embedded
+    reader, frame, faces, views, sensors, (fake_imu, fake_gnss) = _carla_inputs(root)
     out = tmp_path / "carla"
     mounts = sensor_mounts(rig, SMALL)
     write_capture_header(out, rig, SMALL, mounts, seed=3)
-    write_carla_frame(out, frame, faces=faces, views=views,
-                      lidar=lidar_to_points(reader.lidar(0).tobytes()),
-                      semantic_lidar=semantic_lidar_to_records(reader.semantic_lidar(0).tobytes()),
-                      radar=radar_to_records(reader.radar(0).tobytes()), imu=imu_to_dict(fake_imu),
-                      gnss=gnss_to_dict(fake_gnss))
+    write_carla_frame(out, frame, faces=faces, views=views, **sensors)
     files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file())
     extra = out / "frames" / "000000" / "carla_frame.json"  # the CARLA path's one extra file
     assert json.loads(extra.read_text()) == {"dvs_missing": []}
@@ -353,6 +362,43 @@ def test_embedded_frame_through_the_carla_path_is_byte_identical(embedded, tmp_p
     np.testing.assert_array_equal(img.semantic, decode_semantic(old.semantic))
     assert not img.actor_id.any()
     assert back.sensors()["bev"]["carla_camera"]["altitude_m"] == 500.0
+
+
+def test_a_frame_assembled_in_memory_is_what_the_reader_decodes_from_the_written_frame(embedded, tmp_path):
+    root, rig = embedded
+    _, frame, faces, views, sensors, _ = _carla_inputs(root)
+    out = tmp_path / "carla"
+    write_capture_header(out, rig, SMALL, sensor_mounts(rig, SMALL), seed=3, source="carla")
+    write_carla_frame(out, frame, faces=faces, views=views, **sensors)
+    back = CaptureReader(out)
+    actors, ego = carla_frame_records(frame)
+    assert actors == back.actors(0) and ego == back.ego(0)
+    assert all(type(v) is list for v in (ego["velocity"], actors[1]["transform"]["location"]))  # JSON types
+    got = carla_frame_sensors(frame, **sensors)
+    for name in ("lidar", "semantic_lidar", "radar"):
+        want = getattr(back, name)(0)
+        assert got[name].dtype == want.dtype
+        np.testing.assert_array_equal(got[name], want)
+    assert got["imu"] == back.imu(0) and got["gnss"] == back.gnss(0)
+    for face, (prev, curr, _) in faces["FV"].items():
+        for instant, images in (("prev", prev), ("curr", curr)):
+            mine, theirs = images.decoded(f"FV/{face}", instant, actor_ids=True), back.face(0, "FV", face, instant)
+            for k in ("rgb", "depth_m", "semantic", "actor_id"):
+                assert getattr(mine, k).dtype == getattr(theirs, k).dtype, k
+                np.testing.assert_array_equal(getattr(mine, k), getattr(theirs, k))
+    mine = views["bev"][1].decoded("bev", "curr")
+    assert mine.actor_id is None
+    np.testing.assert_array_equal(mine.depth_m, back.view(0, "bev").depth_m)
+    # Without an instance camera (CARLA < 0.9.14) the ids read back are 0, as the writer fills them in.
+    old = CarlaImages(curr.rgb, curr.depth, curr.semantic).decoded("FV/top", "curr", actor_ids=True)
+    assert old.actor_id.dtype == np.int32 and not old.actor_id.any()
+    with pytest.raises(CarlaCaptureError, match=r"FV/top: depth_prev is \(3, 32, 4\)"):
+        CarlaImages(curr.rgb, curr.depth[:3], curr.semantic).decoded("FV/top", "prev")
+    bad = dict(sensors, lidar=np.full((2, 4), np.nan, np.float32))
+    with pytest.raises(CarlaCaptureError, match="frame 0: lidar: 8 value"):
+        carla_frame_sensors(frame, **bad)
+    with pytest.raises(CarlaCaptureError, match="frame 0 imu.json"):
+        carla_frame_sensors(frame, **dict(sensors, imu={"compass": float("nan")}))
 
 
 def test_front_height_map_from_depth_matches_the_scene(embedded):
