@@ -483,29 +483,43 @@ def _capture_locked(carla, client, args, weather: str, rig_file, root: Path) -> 
         session.destroy()
 
 
-def frame_writer(root, k, prev, curr, session, rig, config, views, tags):
-    """Assemble frame ``k`` from the ticks t-1 (``prev``) and t (``curr``): the actor records are read
-    from the server now; the returned function converts and writes the frame (any thread)."""
+def street_frame(k: int, prev: dict, curr: dict, session, tags: str):
+    """Frame ``k``'s actor and ego records (`jaxfish.scene.StreetFrame`) from the ticks t-1
+    (``prev``) and t (``curr``): the world's actors are read from the server now."""
     snap_p, snap_c = prev["snapshot"], curr["snapshot"]
     ego_id = session.ego.id
     world_actors = session.world.get_actors()
     actors = list(world_actors.filter("vehicle.*")) + list(world_actors.filter("walker.pedestrian.*"))
     records = carla_actor_records(actors, snap_p, snap_c, ego_id=ego_id, tag_table=tags)
-    frame = carla_street_frame(k, snap_c.timestamp.elapsed_seconds, records, carla_ego_motion(snap_c.find(ego_id)),
-                               dt_s=DT_S, seed=session.args.seed)
+    return carla_street_frame(k, snap_c.timestamp.elapsed_seconds, records, carla_ego_motion(snap_c.find(ego_id)),
+                              dt_s=DT_S, seed=session.args.seed)
+
+
+def frame_arrays(prev: dict, curr: dict, cameras, config, views: dict) -> tuple[dict, dict, dict]:
+    """``(faces, views, sensors)`` of the ticks t-1 (``prev``) and t (``curr``) as `write_carla_frame`
+    takes them: ``faces[camera][face] = (prev, curr, dvs events)`` in the capture's face order,
+    ``views[name] = (prev, curr, height map at t)`` for the views of ``views`` (``{name: (camera,
+    camera_to_vehicle)}``), and the lidar, radar, IMU and GNSS readings at t."""
+    faces = {cam: {f: (images(prev, ("camera", cam, f)), images(curr, ("camera", cam, f)),
+                       curr[("camera", cam, f, "dvs")]) for f in config.faces} for cam in cameras}
+    out_views = {}
+    for name, (camera, pose) in views.items():
+        c = images(curr, ("view", name))
+        height = height_from_depth(decode_depth(c.depth), camera, pose)
+        out_views[name] = (images(prev, ("view", name)), c, height)
+    sensors = {name: curr[(name,)] for name in ("lidar", "semantic_lidar", "radar", "imu", "gnss")}
+    return faces, out_views, sensors
+
+
+def frame_writer(root, k, prev, curr, session, rig, config, views, tags):
+    """Assemble frame ``k`` from the ticks t-1 (``prev``) and t (``curr``): the actor records are read
+    from the server now; the returned function converts and writes the frame (any thread)."""
+    frame = street_frame(k, prev, curr, session, tags)
 
     def write() -> None:
-        faces = {cam: {f: (images(prev, ("camera", cam, f)), images(curr, ("camera", cam, f)),
-                           curr[("camera", cam, f, "dvs")]) for f in config.faces} for cam in rig}
-        out_views = {}
-        for name, (camera, pose) in views.items():
-            c = images(curr, ("view", name))
-            height = height_from_depth(decode_depth(c.depth), camera, pose)
-            out_views[name] = (images(prev, ("view", name)), c, height)
-        write_carla_frame(root, frame, faces=faces, views=out_views, lidar=curr[("lidar",)],
-                          semantic_lidar=curr[("semantic_lidar",)], radar=curr[("radar",)], imu=curr[("imu",)],
-                          gnss=curr[("gnss",)], prev_from_frame=k - 1 if k > 0 else None,
-                          dvs_missing=curr["dvs_missing"])
+        faces, out_views, sensors = frame_arrays(prev, curr, rig, config, views)
+        write_carla_frame(root, frame, faces=faces, views=out_views, prev_from_frame=k - 1 if k > 0 else None,
+                          dvs_missing=curr["dvs_missing"], **sensors)
 
     return write
 
