@@ -34,6 +34,7 @@ from ._mounts import rig_on_actor as rig_on_actor
 from ._mounts import sensor_carla_mounts as sensor_carla_mounts
 from ._mounts import with_bev_altitude as with_bev_altitude
 from ._readings import carla_geo_reference as carla_geo_reference
+from ._readings import checked_events as checked_events
 from ._readings import dvs_to_events as dvs_to_events
 from ._readings import gnss_to_dict as gnss_to_dict
 from ._readings import height_from_depth as height_from_depth

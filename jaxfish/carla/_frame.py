@@ -9,11 +9,11 @@ from typing import Any
 
 import numpy as np
 
-from ..io import DVS_EVENT_DTYPE
 from ..io._capture import actor_to_dict
 from ..io._json import to_json_text
 from ..scene import RADAR_DTYPE, SEMANTIC_LIDAR_DTYPE, StreetFrame
 from ._images import CarlaImages
+from ._readings import checked_events
 from ._version import CarlaCaptureError
 
 
@@ -77,13 +77,6 @@ def carla_frame_sensors(
     return out
 
 
-def _events(events: np.ndarray, what: str) -> np.ndarray:
-    ev = np.asarray(events)
-    if ev.dtype != DVS_EVENT_DTYPE or ev.ndim != 1:
-        raise CarlaCaptureError(f"{what}: DVS events must have DVS_EVENT_DTYPE, got {ev.dtype} {ev.shape}")
-    return ev
-
-
 def carla_frame(
     street: StreetFrame,
     *,
@@ -116,7 +109,7 @@ def carla_frame(
             imgs = [images[i].decoded(f"{cam}/{face}", instant) for face, images in per_face.items()]
             stacks[instant] = CubeFaces(rgb=np.stack([m.rgb for m in imgs]), depth_m=np.stack([m.depth_m for m in imgs]),
                                         semantic=np.stack([m.semantic for m in imgs]))
-        events = tuple(_events(images[2], f"{cam}/{face}") for face, images in per_face.items())
+        events = tuple(checked_events(images[2], f"{cam}/{face}") for face, images in per_face.items())
         camera_frames.append(CameraFrame(faces_prev=stacks["prev"], faces=stacks["curr"], events=events))
     view = None
     if bev is not None:

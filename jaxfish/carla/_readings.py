@@ -49,6 +49,15 @@ def dvs_to_events(events, what: str = "dvs") -> np.ndarray:
     return ev[np.argsort(ev["t"], kind="stable")]
 
 
+def checked_events(events: np.ndarray, what: str = "dvs") -> np.ndarray:
+    """``events`` as a 1-D `DVS_EVENT_DTYPE` array (what `dvs_to_events` returns); another dtype or
+    shape raises `CarlaCaptureError` naming ``what`` (the face, e.g. ``"FV/left"``)."""
+    ev = np.asarray(events)
+    if ev.dtype != DVS_EVENT_DTYPE or ev.ndim != 1:
+        raise CarlaCaptureError(f"{what}: DVS events must have DVS_EVENT_DTYPE and one axis, got {ev.dtype} {ev.shape}")
+    return ev
+
+
 def _records(data, dtype: np.dtype, what: str) -> np.ndarray:
     raw = _raw_bytes(data, what)
     if len(raw) % dtype.itemsize:

@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 
 from ..io import (
-    DVS_EVENT_DTYPE,
     atomic_path,
     atomic_write_text,
     write_events_npy,
@@ -25,11 +24,12 @@ from ..io._json import to_json_text, write_json
 from ..scene import CaptureConfig, StreetFrame
 from ._images import CarlaImages
 from ._mounts import CarlaMount, bev_pinhole_fov_deg
+from ._readings import checked_events
 from ._version import CarlaCaptureError, carla_semantic_tags, has_instance_camera
 
 
-def _write_raw_images(directory: Path, images: CarlaImages, instant: str, what: str, reuse: Path | None = None) -> None:
-    images = images.checked(what, instant)  # every image checked before the first is written
+def _write_raw_images(directory: Path, images: CarlaImages, instant: str, reuse: Path | None = None) -> None:
+    """Write checked images (`CarlaImages.checked`) as ``{kind}_{instant}.png``."""
     for kind in CarlaImages.KINDS:
         source = reuse / f"{kind}_curr.png" if reuse is not None else None
         if source is not None and source.is_file():  # the same tick, already encoded: copy its bytes
@@ -71,23 +71,27 @@ def write_carla_frame(
     if unknown:
         raise CarlaCaptureError(f"frame {frame.frame}: dvs_missing names faces {unknown} that are not written "
                                 f"(faces are 'camera/face': {sorted(known)})")
+    # Every input is checked before the first file is written: a bad one leaves no frame directory.
+    faces = {cam: {face: (prev.checked(f"{cam}/{face}", "prev"), curr.checked(f"{cam}/{face}", "curr"),
+                          checked_events(events, f"{cam}/{face}"))
+                   for face, (prev, curr, events) in per_face.items()} for cam, per_face in faces.items()}
+    checked_views = {}
+    for name, (prev, curr, height) in views.items():
+        prev, curr = prev.checked(name, "prev"), curr.checked(name, "curr")
+        hm = np.asarray(height, np.float32)
+        if hm.shape != curr.rgb.shape[:2]:
+            raise CarlaCaptureError(f"{name}: height map {hm.shape} does not match the image {curr.rgb.shape[:2]}")
+        checked_views[name] = (prev, curr, hm)
     before = frame_dir(root, prev_from_frame) if prev_from_frame is not None else None
     for cam, per_face in faces.items():
         for face, (prev, curr, events) in per_face.items():
             fd = d / "cameras" / cam / face
-            _write_raw_images(fd, prev, "prev", f"{cam}/{face}",
-                              before / "cameras" / cam / face if before is not None else None)
-            _write_raw_images(fd, curr, "curr", f"{cam}/{face}")
-            ev = np.asarray(events)
-            if ev.dtype != DVS_EVENT_DTYPE:
-                raise CarlaCaptureError(f"{cam}/{face}: DVS events must have DVS_EVENT_DTYPE, got {ev.dtype}")
-            write_events_npy(fd / "dvs.npy", ev)
-    for name, (prev, curr, height) in views.items():
-        _write_raw_images(d / name, prev, "prev", name, before / name if before is not None else None)
-        _write_raw_images(d / name, curr, "curr", name)
-        hm = np.asarray(height, np.float32)
-        if hm.shape != curr.rgb.shape[:2]:
-            raise CarlaCaptureError(f"{name}: height map {hm.shape} does not match the image {curr.rgb.shape[:2]}")
+            _write_raw_images(fd, prev, "prev", before / "cameras" / cam / face if before is not None else None)
+            _write_raw_images(fd, curr, "curr")
+            write_events_npy(fd / "dvs.npy", events)
+    for name, (prev, curr, hm) in checked_views.items():
+        _write_raw_images(d / name, prev, "prev", before / name if before is not None else None)
+        _write_raw_images(d / name, curr, "curr")
         write_image(d / name / "height_curr.exr", hm)
     write_json(d / "carla_frame.json", {"dvs_missing": sorted(set(dvs_missing))}, indent=1, error=CarlaCaptureError)
     return write_frame(root, frame, cameras={}, views={}, lidar=lidar, semantic_lidar=semantic_lidar, radar=radar,

@@ -462,7 +462,13 @@ def test_frame_assembly_rejects_bad_inputs(embedded, tmp_path):
         write_carla_frame(tmp_path, frame, faces={"FV": {"front": (ok, ok, np.zeros(0, DVS_EVENT_DTYPE))}}, views={},
                           lidar=np.zeros((0, 4)), semantic_lidar=np.zeros(0, SEMANTIC_LIDAR_DTYPE),
                           radar=np.zeros(0, RADAR_DTYPE), imu={}, gnss={}, dvs_missing=["FV/nope"])
+    with pytest.raises(CarlaCaptureError, match=r"bev: height map \(3, 4\)"):  # a view after a good face
+        write_carla_frame(tmp_path, frame, faces={"FV": {"front": (ok, ok, np.zeros(0, DVS_EVENT_DTYPE))}},
+                          views={"bev": (ok, ok, np.zeros((3, 4)))}, lidar=np.zeros((0, 4)),
+                          semantic_lidar=np.zeros(0, SEMANTIC_LIDAR_DTYPE), radar=np.zeros(0, RADAR_DTYPE), imu={},
+                          gnss={})
     assert json.loads((tmp_path / "capture.json").read_text())["frames"] == []  # nothing listed
+    assert not (tmp_path / "frames" / "000000").exists()  # and nothing written: inputs are checked first
 
 
 # ---------------------------------------------------------------------------- the program, on a fake CARLA
