@@ -35,6 +35,7 @@ from jaxfish.carla import (
     capture_sensor_specs,
     carla_actor_records,
     carla_ego_motion,
+    carla_frame,
     carla_geo_reference,
     carla_semantic_tags,
     carla_street_frame,
@@ -431,36 +432,58 @@ def capture_weather(carla, client, args, weather: str, rig_file) -> Path:
     return root
 
 
-def _capture_locked(carla, client, args, weather: str, rig_file, root: Path) -> None:
+class Rigged:
+    """A session's rig and sensors once set up (`set_up`): what every frame of it needs."""
+
+    def __init__(self, rig, config, raised, specs, version, tags, required, dvs):
+        self.rig, self.config, self.raised, self.specs = rig, config, raised, specs
+        self.version, self.tags, self.required, self.dvs = version, tags, required, dvs
+
+    def views(self, args, names=("bev", "front")) -> dict:
+        """``{name: (camera, camera_to_vehicle)}`` of the views whose height maps are computed."""
+        cameras = {"bev": (bev_pinhole(self.config, args.bev_altitude), self.raised.bev_camera_to_vehicle),
+                   "front": (front_camera(self.config), self.raised.front_camera_to_vehicle)}
+        return {n: cameras[n] for n in names}
+
+
+def set_up(session, carla, client, args, weather: str, rig_file, header_root: Path | None) -> Rigged:
+    """Synchronous mode, the weather, the ego (and the rig moved onto it), traffic, every sensor,
+    the warm-up ticks; with ``header_root`` also the capture's header files (`write_capture_header`,
+    `finish_carla_header`)."""
     version = client.get_server_version()
-    tags = carla_semantic_tags(version)
     config, exposure = capture_config(args), capture_exposure(args)
-    session = Session(carla, client, args)
     rng = random.Random(args.seed)
-    try:
-        session.synchronous()
-        session.world.set_weather(getattr(carla.WeatherParameters, weather))
-        points = session.spawn_ego(rng)
-        session.world.tick()  # the ego's physics (wheel positions) exist after a tick
-        rig = rig_on_actor(rig_file, vehicle_origin(args, rig_file, session.ego))
-        session.spawn_traffic(rng, points)
-        mounts = sensor_mounts(rig, config)
-        specs = capture_sensor_specs(rig, config, mounts, carla_version=version, bev_altitude_m=args.bev_altitude,
-                                     exposure=exposure)
-        raised = with_bev_altitude(mounts, bev_altitude_m=args.bev_altitude)
-        write_capture_header(root, rig, config, raised, seed=args.seed, source="carla", dt_s=DT_S)
-        finish_carla_header(root, carla_version=version, mounts=sensor_carla_mounts(raised),
+    session.synchronous()
+    session.world.set_weather(getattr(carla.WeatherParameters, weather))
+    points = session.spawn_ego(rng)
+    session.world.tick()  # the ego's physics (wheel positions) exist after a tick
+    rig = rig_on_actor(rig_file, vehicle_origin(args, rig_file, session.ego))
+    session.spawn_traffic(rng, points)
+    mounts = sensor_mounts(rig, config)
+    specs = capture_sensor_specs(rig, config, mounts, carla_version=version, bev_altitude_m=args.bev_altitude,
+                                 exposure=exposure)
+    raised = with_bev_altitude(mounts, bev_altitude_m=args.bev_altitude)
+    if header_root is not None:
+        write_capture_header(header_root, rig, config, raised, seed=args.seed, source="carla", dt_s=DT_S)
+        finish_carla_header(header_root, carla_version=version, mounts=sensor_carla_mounts(raised),
                             bev_altitude_m=args.bev_altitude, config=config,
                             geo=carla_geo_reference(session.world.get_map(), carla),
                             extra={"town": session.world.get_map().name, "weather": weather})
-        required, dvs = session.attach_sensors(specs)
-        print(f"[{weather}] {len(specs)} sensors on the ego, {len(session.actor_ids) - 1} other actors; "
-              f"warming up {args.warmup} ticks")
-        for _ in range(args.warmup - 1):
-            session.warm_up()
+    required, dvs = session.attach_sensors(specs)
+    print(f"[{weather}] {len(specs)} sensors on the ego, {len(session.actor_ids) - 1} other actors; "
+          f"warming up {args.warmup} ticks")
+    for _ in range(args.warmup - 1):
+        session.warm_up()
+    return Rigged(rig, config, raised, specs, version, carla_semantic_tags(version), required, dvs)
+
+
+def _capture_locked(carla, client, args, weather: str, rig_file, root: Path) -> None:
+    session = Session(carla, client, args)
+    try:
+        rigged = set_up(session, carla, client, args, weather, rig_file, root)
+        rig, config, tags, required, dvs = rigged.rig, rigged.config, rigged.tags, rigged.required, rigged.dvs
+        views = rigged.views(args)
         prev = session.tick(required, dvs)
-        views = {"bev": (bev_pinhole(config, args.bev_altitude), raised.bev_camera_to_vehicle),
-                 "front": (front_camera(config), raised.front_camera_to_vehicle)}
         start = time.monotonic()
         # One writer thread: frame k is encoded and written while the server simulates the next ticks
         # (one thread only, so that frames reach capture.json in order); at most two frames wait.
@@ -481,6 +504,20 @@ def _capture_locked(carla, client, args, weather: str, rig_file, root: Path) -> 
             writer.shutdown(wait=True)
     finally:
         session.destroy()
+
+
+def online_frames(session, rigged: Rigged, args):
+    """Tick the world and yield every frame (`jaxfish.pipeline.Frame`, `jaxfish.carla.carla_frame`)
+    of the capture as the reader of the offline mode's files would decode it: the cube faces, the
+    BEV and the other sensors stay in memory. The world ticks when the consumer asks for a frame."""
+    views = rigged.views(args, names=("bev",))
+    prev = session.tick(rigged.required, rigged.dvs)
+    for k in range(args.frames):
+        curr = session.tick(rigged.required, rigged.dvs)
+        street = street_frame(k, prev, curr, session, rigged.tags)
+        faces, out_views, sensors = frame_arrays(prev, curr, rigged.rig, rigged.config, views)
+        yield carla_frame(street, tag_table=rigged.tags, faces=faces, bev=out_views["bev"], **sensors)
+        prev = curr
 
 
 def street_frame(k: int, prev: dict, curr: dict, session, tags: str):

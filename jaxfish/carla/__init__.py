@@ -19,6 +19,7 @@ The CARLA pixel codecs (depth, semantic, instance, BGRA, the DVS dtype) are `jax
 encodes and decodes, this package talks to the simulator. The core never imports it.
 """
 
+from ._frame import carla_frame as carla_frame
 from ._frame import carla_frame_records as carla_frame_records
 from ._frame import carla_frame_sensors as carla_frame_sensors
 from ._images import CarlaImages as CarlaImages
