@@ -11,8 +11,7 @@ on the sample first; then ``2 x workers`` builds of the sample run as separate t
     uv run python scripts/bench_build.py --capture out/cap  # reuse a full-size capture
     uv run python scripts/bench_build.py --capture out/cap --no-dask --stages  # + each stage's wall / CPU time
 
-Goal: >= 1 sample/s after compile, peak < 4 GB. Measured on the 2-core CPU (shared with other
-jobs, load ~4): see docs/dataset.md "Speed" and the report printed by this script.
+Goal: >= 1 sample/s after compile, peak < 4 GB. Current figures: docs/performance.md.
 """
 
 from __future__ import annotations

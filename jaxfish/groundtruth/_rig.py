@@ -4,12 +4,10 @@ several samples (leading axes ``(N, C)``) in one call.
 The batch is mapped either by `jax.vmap` (``batch="vmap"``: one program per stage for the whole
 batch, one host round trip for the static sizes of the instance segmentation, the largest over
 the batch) or by a loop dispatching each camera's compiled programs asynchronously
-(``batch="loop"``: static sizes per camera). Both give the same values (tested). Which is faster
-depends on the backend: on a 2-core CPU the loop took 0.8-0.9 s for the four 1280 x 966 cameras of
-a sample, the vmapped program 1.9-2.4 s and the four cameras unrolled in one program 1.5 s (XLA:CPU
-lowers batched gathers slowly and schedules one large program worse than four small ones), so
-``batch="auto"`` loops on CPU and vmaps on accelerators, where one wide program keeps the device
-busy.
+(``batch="loop"``: static sizes per camera). Both give the same values (tested).
+``batch="auto"`` loops on the CPU backend (XLA:CPU lowers batched gathers slowly and schedules one
+large program worse than one small program per camera) and vmaps on accelerators, where one wide
+program keeps the device busy. Timings of both modes: ``docs/performance.md``.
 """
 
 from __future__ import annotations
@@ -222,8 +220,8 @@ def rig_ground_truth(
 
     # Loop: camera by camera, exactly `fisheye_ground_truth`'s programs (images, plan, read the static
     # sizes back, queue the rest asynchronously), then the next camera. Interleaving keeps one
-    # camera's intermediates alive at a time: planning every camera first and sharing one round trip
-    # was 0.1 s slower per sample, and fusing the images into the plan program 0.05 s slower.
+    # camera's intermediates alive at a time, which is faster on CPU than planning every camera first
+    # with one shared round trip, or than fusing the images into the plan program.
     def one(cam, smp, item):
         lut, camera, c2v_j, ray = cam
         (rgb_p, dep_p, tag_p), (rgb, dep, tag) = item

@@ -75,8 +75,8 @@ def _to_output(values: Array, dtype) -> Array:
 
 
 def _over_frames(fn, frames: Array):
-    """``fn`` applied to each frame of ``(B, ...)``, one frame at a time (on CPU, XLA's batched
-    gather and gathers inside a loop run 2-4x slower than one unbatched gather per frame)."""
+    """``fn`` applied to each frame of ``(B, ...)``, one frame at a time (on CPU, XLA lowers a
+    batched gather, and gathers inside a loop, more slowly than one unbatched gather per frame)."""
     b = frames.shape[0]
     if b <= _UNROLL_FRAMES:
         return jnp.stack([fn(frames[i]) for i in range(b)])
