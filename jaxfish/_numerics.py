@@ -45,6 +45,13 @@ def safe_norm(x: Float[Array, "*batch n"], *, keepdims: bool = False) -> Float[A
     return jnp.where(positive, jnp.sqrt(safe_sq), jnp.zeros_like(sq))
 
 
+def safe_sqrt(x: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+    """``sqrt(x)`` for ``x > 0``, else 0, with a finite value and gradient everywhere (the
+    gradient is 0 for ``x <= 0``)."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, jnp.ones_like(x))), jnp.zeros_like(x))
+
+
 def safe_hypot(*planes: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """`safe_norm` of coordinates given as separate planes (no minor-axis stack to vectorise)."""
     sq = sum(c * c for c in planes)

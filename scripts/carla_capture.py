@@ -59,12 +59,12 @@ from jaxfish.carla import (
     with_bev_altitude,
     write_carla_frame,
 )
+from jaxfish.dataset import rig_names
 from jaxfish.io import (
     check_capture_folder,
     decode_depth,
     write_capture_header,
 )
-from jaxfish.io._capture import rig_names
 from jaxfish.io._folder import folder_lock, remove_temporaries
 from jaxfish.reprojection import UndersampledFacesWarning, warn_undersampled_faces
 from jaxfish.scene import CaptureConfig, front_camera, sensor_mounts

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import resolve_dtype, safe_hypot, safe_norm
+from .._numerics import resolve_dtype, safe_hypot, safe_norm, safe_sqrt
 from ._base import (
     AbstractCamera,
     as_coordinates,
@@ -17,13 +17,13 @@ from ._base import (
     measurable_radius,
     point_direction,
 )
-from ._unified import _safe_sqrt, unified_w
+from ._unified import unified_w
 
 
 def double_sphere_w2(xi: Array, alpha: Array) -> Array:
     """w2 = (w1 + ξ) / sqrt(2 w1 ξ + ξ² + 1): the projection domain is ``z > -w2 |p|``."""
     w1 = unified_w(alpha)
-    den = _safe_sqrt(2 * w1 * xi + xi * xi + 1)  # 0 only at xi = -1, alpha = 0.5 (degenerate): w2 = 0 there
+    den = safe_sqrt(2 * w1 * xi + xi * xi + 1)  # 0 only at xi = -1, alpha = 0.5 (degenerate): w2 = 0 there
     return (w1 + xi) / jnp.where(den > 0, den, 1.0)
 
 
@@ -92,7 +92,7 @@ class DoubleSphere(AbstractCamera):
         x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
         d1 = safe_hypot(x, y, z)
         zz = xi * d1 + z
-        d2 = _safe_sqrt(x * x + y * y + zz * zz)
+        d2 = safe_sqrt(x * x + y * y + zz * zz)
         valid = finite & (d1 > 0) & (z > -double_sphere_w2(xi, alpha) * d1)
         denom = alpha * d2 + (1 - alpha) * zz
         valid = valid & (denom > 0)
@@ -115,12 +115,12 @@ class DoubleSphere(AbstractCamera):
         mx, my = jnp.where(measurable, mx, 0.0), jnp.where(measurable, my, 0.0)
         r2 = mx * mx + my * my
         disc = 1 - (2 * alpha - 1) * r2
-        den = alpha * _safe_sqrt(disc) + 1 - alpha
+        den = alpha * safe_sqrt(disc) + 1 - alpha
         inside = ((alpha <= 0.5) | (disc >= 0)) & (den > 0)  # den = 0: alpha = 1 at or beyond the rim
         mz = (1 - alpha * alpha * r2) / jnp.where(den > 0, den, 1.0)
         disc2 = mz * mz + (1 - xi * xi) * r2
         inside = inside & (disc2 >= 0)
-        factor = (mz * xi + _safe_sqrt(disc2)) / (mz * mz + r2)
+        factor = (mz * xi + safe_sqrt(disc2)) / (mz * mz + r2)
         ray = jnp.stack([factor * mx, factor * my, factor * mz - xi], axis=-1)
         norm = safe_norm(ray, keepdims=True)
         ray = ray / jnp.where(norm > 0, norm, jnp.ones_like(norm))

@@ -14,14 +14,16 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._constants import FAR_DEPTH_M
 from .._numerics import materialize, stack_last
 from ..cameras import AbstractCamera
 from ..transforms import CARLA_TO_ISO, Pose
 
 OCCLUSION_REL_TOL = 0.03
 """Default relative tolerance of the occlusion test (predicted range vs the target range map)."""
-FAR_RANGE_M = 1000.0
-"""Far / sky range (metres): CARLA's depth saturation, SynWoodScape's sky value."""
+FAR_RANGE_M = FAR_DEPTH_M
+"""Far / sky range (metres): `jaxfish.reprojection.FAR_DEPTH_M` (CARLA's depth saturation) under the
+name of range maps; SynWoodScape's sky value."""
 
 
 class FlowField(eqx.Module):
@@ -183,7 +185,7 @@ def analytic_flow(
         x1 = jnp.minimum(x0 + 1, tw - 1)
         y1 = jnp.minimum(y0 + 1, th - 1)
         tol = jnp.asarray(occlusion_rel_tol, dtype)
-        far = jnp.asarray(FAR_RANGE_M, dtype)
+        far = jnp.asarray(FAR_DEPTH_M, dtype)
         near_limit = pred_range * (1 - tol)
         far_point = pred_range >= far * (1 - tol)
         # Seen (not occluded) when one of the 4 nearest target ranges reaches the predicted range.

@@ -27,12 +27,12 @@ from ..transforms import Pose
 from ._boxes3d import Boxes3D
 from ._fisheye import (
     CameraGroundTruth,
-    _counts,
-    _finish,
-    _jit_images_pair,
-    _rest,
     camera_to_world,
     fisheye_images,
+    fisheye_images_pair,
+    ground_truth_from_images,
+    ground_truth_from_plan,
+    ground_truth_plan,
     rest_statics,
 )
 from ._flow import pixel_rays
@@ -81,7 +81,7 @@ def _plan_one(cam, smp, item, carla_version: str, reach: float):
     (rgb_p, dep_p, tag_p), (rgb, dep, tag) = item
     img_p, img = fisheye_images(lut, rgb_p, dep_p, tag_p), fisheye_images(lut, rgb, dep, tag)
     c2w_p, c2w = camera_to_world(vp, c2v), camera_to_world(vc, c2v)
-    k, busy, many, cands, points = _counts(camera, ray, img_p, img, c2w_p, c2w, bp, bc, carla_version, reach)
+    k, busy, many, cands, points = ground_truth_plan(camera, ray, img_p, img, c2w_p, c2w, bp, bc, carla_version, reach)
     return (img_p, img, c2w_p, c2w, cands, points), jnp.stack([k, busy, many]).astype(jnp.int32)
 
 
@@ -89,7 +89,7 @@ def _rest_one(cam, smp, item, statics):
     camera, ray = cam
     bp, bc = smp
     img_p, img, c2w_p, c2w, cands, points = item
-    return _rest(camera, ray, img_p, img, c2w_p, c2w, bp, bc, cands, points, *statics)
+    return ground_truth_from_plan(camera, ray, img_p, img, c2w_p, c2w, bp, bc, cands, points, *statics)
 
 
 @functools.partial(jax.jit, static_argnums=(10, 11))
@@ -225,9 +225,11 @@ def rig_ground_truth(
     def one(cam, smp, item):
         lut, camera, c2v_j, ray = cam
         (rgb_p, dep_p, tag_p), (rgb, dep, tag) = item
-        img_p, img = _jit_images_pair(lut, rgb_p, dep_p, tag_p, rgb, dep, tag)
-        return _finish(camera, ray, img_p, img, c2v_j, *smp, carla_version, motion_threshold_m, backward_flow, margin_m,
-                       fallback_m, max_candidates, surface_samples)
+        img_p, img = fisheye_images_pair(lut, rgb_p, dep_p, tag_p, rgb, dep, tag)
+        return ground_truth_from_images(
+            camera, ray, img_p, img, c2v_j, *smp, carla_version=carla_version, motion_threshold_m=motion_threshold_m,
+            backward_flow=backward_flow, margin_m=margin_m, fallback_m=fallback_m, max_candidates=max_candidates,
+            surface_samples=surface_samples)
 
     # Each camera's faces in one indexing step (a view of NumPy faces, one slice of device faces).
     per_camera = [(luts[j], cameras[j], _at(c2v, j), rays[j]) for j in range(c)]

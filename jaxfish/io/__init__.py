@@ -1,17 +1,15 @@
-"""I/O adapters at the edge (files in, arrays out): never imported by the pure-JAX core."""
+"""I/O at the edge: codecs and file formats only (files in, arrays out; arrays in, files out) —
+images, labels, flow, events, calibrations, captures, LUT files. No ground truth is computed here
+(`jaxfish.pipeline` does); never imported by the pure-JAX core."""
 
 from ._atomic import atomic_path as atomic_path
 from ._atomic import atomic_write_bytes as atomic_write_bytes
 from ._atomic import atomic_write_text as atomic_write_text
 from ._bev import BEV_METADATA_ATTRIBUTE as BEV_METADATA_ATTRIBUTE
 from ._bev import bev_from_metadata as bev_from_metadata
-from ._bev import bev_metadata as bev_metadata
 from ._bev import bev_sensor as bev_sensor
-from ._bev import capture_bev_ground_truth as capture_bev_ground_truth
-from ._bev import capture_camera_maps as capture_camera_maps
 from ._bev import load_bev_calibration as load_bev_calibration
 from ._bev import read_bev_metadata as read_bev_metadata
-from ._bev import write_bev_ground_truth as write_bev_ground_truth
 from ._bev import write_png_with_metadata as write_png_with_metadata
 from ._calibration_json import calibration_from_dict as calibration_from_dict
 from ._calibration_json import calibration_to_dict as calibration_to_dict
@@ -23,7 +21,6 @@ from ._capture import CaptureError as CaptureError
 from ._capture import CaptureReader as CaptureReader
 from ._capture import check_capture_folder as check_capture_folder
 from ._capture import forget_decoded_images as forget_decoded_images
-from ._capture import synthesize_capture as synthesize_capture
 from ._capture import write_capture_header as write_capture_header
 from ._capture import write_frame as write_frame
 from ._carla import CARLA_MAX_DEPTH_M as CARLA_MAX_DEPTH_M
@@ -52,45 +49,33 @@ from ._events import carla_events as carla_events
 from ._events import carla_to_tonic as carla_to_tonic
 from ._events import read_events_npy as read_events_npy
 from ._events import read_events_tonic as read_events_tonic
-from ._events import write_events_color as write_events_color
 from ._events import write_events_npy as write_events_npy
 from ._events import write_events_tonic as write_events_tonic
 from ._flow import FLO_TAG as FLO_TAG
 from ._flow import read_flo as read_flo
 from ._flow import read_kitti_flow as read_kitti_flow
 from ._flow import write_flo as write_flo
-from ._flow import write_flow_color as write_flow_color
 from ._flow import write_kitti_flow as write_kitti_flow
 from ._images import read_image as read_image
 from ._images import read_image_metadata as read_image_metadata
 from ._images import write_image as write_image
 from ._labels import DEPTH_ATTRIBUTE as DEPTH_ATTRIBUTE
-from ._labels import DEPTH_COLOR_RANGE_M as DEPTH_COLOR_RANGE_M
 from ._labels import PALETTE_ATTRIBUTE as PALETTE_ATTRIBUTE
-from ._labels import boxes_2d_rows as boxes_2d_rows
-from ._labels import camera_events as camera_events
-from ._labels import capture_ground_truth as capture_ground_truth
-from ._labels import capture_rig_ground_truth as capture_rig_ground_truth
-from ._labels import depth_to_color as depth_to_color
-from ._labels import map_face_events as map_face_events
 from ._labels import read_boxes_2d_csv as read_boxes_2d_csv
 from ._labels import read_boxes_3d_pickle as read_boxes_3d_pickle
 from ._labels import read_depth_exr as read_depth_exr
 from ._labels import read_displacements as read_displacements
 from ._labels import read_label_png as read_label_png
 from ._labels import read_palette as read_palette
-from ._labels import synwoodscape_palette_dict as synwoodscape_palette_dict
 from ._labels import write_boxes_2d_csv as write_boxes_2d_csv
 from ._labels import write_boxes_3d_ext_json as write_boxes_3d_ext_json
 from ._labels import write_boxes_3d_pickle as write_boxes_3d_pickle
-from ._labels import write_camera_ground_truth as write_camera_ground_truth
 from ._labels import write_color_png as write_color_png
 from ._labels import write_depth_exr as write_depth_exr
 from ._labels import write_depth_npy as write_depth_npy
 from ._labels import write_displacements as write_displacements
 from ._labels import write_label_png as write_label_png
 from ._labels import write_npz as write_npz
-from ._labels import write_sample_ground_truth as write_sample_ground_truth
 from ._lut_cache import LUT_FORMAT_VERSION as LUT_FORMAT_VERSION
 from ._lut_cache import cached_lut as cached_lut
 from ._lut_cache import load_lut as load_lut

@@ -41,7 +41,12 @@ from ..calibration import Calibration
 from ..cameras import WoodScapeFisheye
 from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict
 from ..transforms import CARLA_TO_ISO, Pose
-from ._calibration_json import _SYNWOODSCAPE_T, _WOODSCAPE_T, calibration_from_dict, calibration_to_dict
+from ._calibration_json import (
+    SYNWOODSCAPE_TRANSLATION_KEY,
+    WOODSCAPE_TRANSLATION_KEY,
+    calibration_from_dict,
+    calibration_to_dict,
+)
 from ._json import read_json, write_json
 
 CORRESPONDENCE_FRAMES: tuple[str, ...] = ("board", "vehicle", "camera")
@@ -185,11 +190,11 @@ def camera_calibration_from_dict(data: Any, *, source: str = "<calibration>", dt
     except ValueError as e:
         raise CalibrationError(str(e)) from None
     ext = data["extrinsic"]
-    flavor, t_key = ("synwoodscape", _SYNWOODSCAPE_T) if isinstance(ext, dict) and _SYNWOODSCAPE_T in ext \
-        else ("woodscape", _WOODSCAPE_T)
+    flavor, t_key = ("synwoodscape", SYNWOODSCAPE_TRANSLATION_KEY) if isinstance(ext, dict) and SYNWOODSCAPE_TRANSLATION_KEY in ext \
+        else ("woodscape", WOODSCAPE_TRANSLATION_KEY)
     if not isinstance(ext, dict) or set(ext) != {"quaternion", t_key}:
         raise CalibrationError(f"{source}: field 'extrinsic': expected {{'quaternion': [x, y, z, w], 'translation': [x, y, z]}}"
-                               f" (or SynWoodScape's {_SYNWOODSCAPE_T!r} instead of 'translation')")
+                               f" (or SynWoodScape's {SYNWOODSCAPE_TRANSLATION_KEY!r} instead of 'translation')")
     q = np.asarray(ext["quaternion"], dtype=np.float64) if _numbers(ext["quaternion"], 4) else None
     t = np.asarray(ext[t_key], dtype=np.float64) if _numbers(ext[t_key], 3) else None
     if q is None:
@@ -227,9 +232,9 @@ def camera_calibration_to_dict(calib: Calibration) -> dict[str, Any]:
     t = np.asarray(calib.camera_to_vehicle.translation, dtype=float)
     if q.ndim != 1 or t.ndim != 1:
         raise ValueError("camera_calibration_to_dict: expected a single (unbatched) calibration")
-    t_key = _WOODSCAPE_T
+    t_key = WOODSCAPE_TRANSLATION_KEY
     if calib.flavor == "synwoodscape":
-        t, t_key = CARLA_TO_ISO @ t, _SYNWOODSCAPE_T
+        t, t_key = CARLA_TO_ISO @ t, SYNWOODSCAPE_TRANSLATION_KEY
     return {
         "extrinsic": {"quaternion": [float(x) for x in q], t_key: [float(x) for x in t]},
         "intrinsic": intrinsics_to_dict(calib.camera),

@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..cameras import AbstractCamera
-from ._fit import Correspondences, _default_tolerances, _free_mask, _solve, jit_project, jit_unproject
+from ._fit import Correspondences, default_tolerances, free_parameter_mask, jit_project, jit_unproject, solve_refit
 from ._parameters import (
     camera_from_intrinsics,
     canonical_model_name,
@@ -196,9 +196,9 @@ def convert_camera(
     p0 = intrinsics_vector(init).astype(dtype)
     init = with_intrinsics(init, p0)
     corr = Correspondences(rays, uv_src, None, ok.astype(dtype))
-    free = jnp.asarray(_free_mask(parameter_names(init), fixed))
-    rtol, atol = _default_tolerances(dtype)
-    p, _, _, _, steps, converged = _solve(
+    free = jnp.asarray(free_parameter_mask(parameter_names(init), fixed))
+    rtol, atol = default_tolerances(dtype)
+    p, _, _, _, steps, converged = solve_refit(
         init, p0, free, jnp.eye(3, dtype=dtype)[None], jnp.zeros((1, 3), dtype), corr, False, jnp.asarray(0),
         jnp.asarray(1.0, dtype), int(max_steps), rtol, atol, with_covariance=False,
     )

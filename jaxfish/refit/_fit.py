@@ -199,7 +199,10 @@ def _summarise(cam, rot, t, corr):
     return res, valid, rms, per_view
 
 
-def _free_mask(names: tuple[str, ...], fixed) -> tuple[bool, ...]:
+def free_parameter_mask(names: tuple[str, ...], fixed: Iterable[str] | Sequence[bool] | str | None) -> tuple[bool, ...]:
+    """Which of a model's parameters (``names``, in `parameter_names` order) a fit may move:
+    ``fixed`` is None (all free), parameter names to hold, or a boolean mask over ``names`` (True:
+    held). ValueError for an unknown name or a mask of the wrong length."""
     if fixed is None:
         return tuple(True for _ in names)
     if isinstance(fixed, str):
@@ -269,9 +272,29 @@ def reprojection_residuals(
 
 
 @eqx.filter_jit
-def _solve(camera, p0, free, rot0, t0, corr, fit_pose, loss_code, loss_scale, max_steps, rtol, atol,
-           with_covariance=True):
-    """One compile per (model, N, n_views, fit_pose): the fixed mask, loss and its scale are traced."""
+def solve_refit(
+    camera: AbstractCamera,
+    p0: Float[Array, " P"],
+    free: Bool[Array, " P"],
+    rot0: Float[Array, "V 3 3"],
+    t0: Float[Array, "V 3"],
+    corr: Correspondences,
+    fit_pose: bool,
+    loss_code: Int[ArrayLike, ""],
+    loss_scale: Float[ArrayLike, ""],
+    max_steps: int,
+    rtol: float,
+    atol: float,
+    with_covariance: bool = True,
+):
+    """The Levenberg-Marquardt solve behind `refit`: ``camera``'s intrinsics from ``p0``
+    (`intrinsics_vector` order; only the ``free`` ones move) and, when ``fit_pose``, the ``V``
+    world-to-camera poses from ``(rot0, t0)``, minimising `reprojection_residuals` of ``corr``
+    with the robust loss ``LOSSES[loss_code]`` at ``loss_scale`` pixels.
+
+    Returns ``(p (P,), rot (V, 3, 3), t (V, 3), extras, num_steps, converged)``; ``extras`` is
+    ``(covariance (P + 6 V, P + 6 V), residual summary)`` with ``with_covariance``, else None.
+    One compile per (model, N, V, fit_pose): the mask, the loss and its scale are traced."""
     dtype = p0.dtype
     n_pose = rot0.shape[0] * 6 if fit_pose else 0
     free_all = jnp.concatenate([free.astype(dtype), jnp.ones(n_pose, dtype)])
@@ -315,7 +338,8 @@ def _solve(camera, p0, free, rot0, t0, corr, fit_pose, loss_code, loss_scale, ma
     return p, rot, t, (cov, _summarise(with_intrinsics(camera, p), rot, t, corr)), steps, ok
 
 
-def _default_tolerances(dtype) -> tuple[float, float]:
+def default_tolerances(dtype) -> tuple[float, float]:
+    """``(rtol, atol)`` of the fit for a floating dtype: 1e-10 in float64, 1e-6 otherwise."""
     return (1e-10, 1e-10) if jnp.dtype(dtype) == jnp.float64 else (1e-6, 1e-6)
 
 
@@ -345,7 +369,7 @@ def refit(
     scale ``loss_scale_px``. Runs in the dtype of the camera parameters (float64 recommended).
     """
     names = parameter_names(camera)
-    free = _free_mask(names, fixed)
+    free = free_parameter_mask(names, fixed)
     p0 = intrinsics_vector(camera)
     dtype = p0.dtype
     camera = with_intrinsics(camera, p0)  # canonical leaves (no weak types): one compile per model
@@ -375,8 +399,8 @@ def refit(
     n_params = sum(free) + (6 * v if fit_pose else 0)
     if 2 * int(used.sum()) < n_params:
         raise ValueError(f"refit: {int(used.sum())} correspondences cannot determine {n_params} free parameters")
-    default_rtol, default_atol = _default_tolerances(dtype)
-    p, rot, t, (cov, summary), steps, ok = _solve(
+    default_rtol, default_atol = default_tolerances(dtype)
+    p, rot, t, (cov, summary), steps, ok = solve_refit(
         camera, p0, jnp.asarray(free), rot0, t0, corr, bool(fit_pose), jnp.asarray(LOSSES.index(loss)),
         jnp.asarray(loss_scale_px, dtype), int(max_steps),
         default_rtol if rtol is None else float(rtol), default_atol if atol is None else float(atol),

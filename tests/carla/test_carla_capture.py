@@ -46,6 +46,7 @@ from jaxfish.carla import (
     with_bev_altitude,
     write_carla_frame,
 )
+from jaxfish.dataset import synthesize_capture
 from jaxfish.io import (
     DVS_EVENT_DTYPE,
     CaptureReader,
@@ -56,7 +57,6 @@ from jaxfish.io import (
     encode_instance,
     encode_semantic,
     read_image,
-    synthesize_capture,
     write_capture_header,
 )
 from jaxfish.reprojection import CUBE_FACE_ROTATIONS, FIVE_FACES, CubeRig
