@@ -21,6 +21,7 @@ import queue
 import random
 import sys
 import time
+import uuid
 import warnings
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -31,6 +32,7 @@ from jaxfish.carla import (
     CarlaCaptureError,
     CarlaExposure,
     CarlaImages,
+    CarlaSource,
     bev_pinhole,
     capture_sensor_specs,
     carla_actor_records,
@@ -115,13 +117,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--dry-run", action="store_true",
                    help="print every sensor (blueprint, mount, attributes) and exit, without a server")
     p.add_argument("--carla-version", default="0.9.15", help="the CARLA release --dry-run assumes")
-    p.add_argument("--out", type=Path, default=None, help="output directory (one capture per weather preset); required "
-                                                          "unless --dry-run")
+    p.add_argument("--out", type=Path, default=None, help="output directory (one capture per weather preset); "
+                                                          "--out or --build is required unless --dry-run")
+    p.add_argument("--build", type=Path, default=None, metavar="DATASET_DIR",
+                   help="online mode: build the SynWoodScape dataset while capturing (one per weather preset, "
+                        "DATASET_DIR/<Preset>/), without writing a capture")
     args = p.parse_args(argv)
     if args.frames <= 0 or args.face_size <= 0 or args.vehicles < 0 or args.walkers < 0 or args.warmup < 1:
         p.error("--frames, --face-size, --warmup must be positive; --vehicles, --walkers non-negative")
-    if args.out is None and not args.dry_run:
-        p.error("--out is required (unless --dry-run)")
+    if args.out is not None and args.build is not None:
+        p.error("--out (write a capture) and --build (build a dataset while capturing) exclude each other")
+    if args.out is None and args.build is None and not args.dry_run:
+        p.error("--out or --build is required (unless --dry-run)")
     return args
 
 
@@ -446,10 +453,12 @@ class Rigged:
         return {n: cameras[n] for n in names}
 
 
-def set_up(session, carla, client, args, weather: str, rig_file, header_root: Path | None) -> Rigged:
+def set_up(session, carla, client, args, weather: str, rig_file, header_root: Path | None, *,
+           online: bool = False) -> Rigged:
     """Synchronous mode, the weather, the ego (and the rig moved onto it), traffic, every sensor,
     the warm-up ticks; with ``header_root`` also the capture's header files (`write_capture_header`,
-    `finish_carla_header`)."""
+    `finish_carla_header`). ``online``: without the sensors a dataset does not use (the front view,
+    the instance cameras)."""
     version = client.get_server_version()
     config, exposure = capture_config(args), capture_exposure(args)
     rng = random.Random(args.seed)
@@ -462,6 +471,8 @@ def set_up(session, carla, client, args, weather: str, rig_file, header_root: Pa
     mounts = sensor_mounts(rig, config)
     specs = capture_sensor_specs(rig, config, mounts, carla_version=version, bev_altitude_m=args.bev_altitude,
                                  exposure=exposure)
+    if online:
+        specs = [spec for spec in specs if spec.key[:2] != ("view", "front") and spec.key[-1] != "instance"]
     raised = with_bev_altitude(mounts, bev_altitude_m=args.bev_altitude)
     if header_root is not None:
         write_capture_header(header_root, rig, config, raised, seed=args.seed, source="carla", dt_s=DT_S)
@@ -506,18 +517,77 @@ def _capture_locked(carla, client, args, weather: str, rig_file, root: Path) -> 
         session.destroy()
 
 
-def online_frames(session, rigged: Rigged, args):
+def online_frames(session, rigged: Rigged, args, cameras):
     """Tick the world and yield every frame (`jaxfish.pipeline.Frame`, `jaxfish.carla.carla_frame`)
-    of the capture as the reader of the offline mode's files would decode it: the cube faces, the
-    BEV and the other sensors stay in memory. The world ticks when the consumer asks for a frame."""
+    of the capture as the reader of the offline mode's files would decode it, its fisheye cameras
+    in the order ``cameras``: the cube faces, the BEV and the other sensors stay in memory. The
+    world ticks when the consumer asks for the next frame."""
     views = rigged.views(args, names=("bev",))
     prev = session.tick(rigged.required, rigged.dvs)
     for k in range(args.frames):
         curr = session.tick(rigged.required, rigged.dvs)
         street = street_frame(k, prev, curr, session, rigged.tags)
-        faces, out_views, sensors = frame_arrays(prev, curr, rigged.rig, rigged.config, views)
+        faces, out_views, sensors = frame_arrays(prev, curr, cameras, rigged.config, views)
         yield carla_frame(street, tag_table=rigged.tags, faces=faces, bev=out_views["bev"], **sensors)
         prev = curr
+
+
+def online_source(session, rigged: Rigged, args, settings: dict) -> CarlaSource:
+    """The session as the dataset builder's source: frame ``k`` is ticked when the builder reads it."""
+    state: dict = {}
+
+    def next_frame(k: int):
+        if "frames" not in state:
+            state["frames"] = online_frames(session, rigged, args, source.cameras)
+        return next(state["frames"])
+
+    source = CarlaSource(rigged.rig, config=rigged.config, bev_camera_to_vehicle=rigged.raised.bev_camera_to_vehicle,
+                         carla_version=rigged.version, frames=args.frames, next_frame=next_frame, settings=settings,
+                         seed=args.seed, dt_s=DT_S)
+    return source
+
+
+def build_weather(carla, client, args, weather: str, rig_file) -> Path:
+    """Spawn everything and build the dataset of ``args.frames`` frames under ``weather`` into
+    ``BUILD/weather`` while the world ticks (`jaxfish.dataset.build_dataset` of a
+    `jaxfish.carla.CarlaSource`), without writing a capture.
+
+    The folder must be new, empty or a jaxfish dataset without samples (a live session cannot
+    resume an earlier build); it is checked, and its lock tried, before anything is spawned (a
+    second writer raises `jaxfish.dataset.DatasetError`). A sample that fails is reported and the
+    program exits with status 2 after the others."""
+    from jaxfish.dataset import DONE_DIR, DatasetError, build_dataset, check_output_folder
+
+    out = check_output_folder(args.build / weather)
+    if any((out / DONE_DIR).glob("*.json")):
+        raise CarlaCaptureError(f"{out}: holds samples of an earlier build; a build while capturing cannot resume it "
+                                "(it is another simulation): use a new or empty folder")
+    out.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out, DatasetError, "build"):  # another writer: refused before anything is spawned
+        pass
+    session = Session(carla, client, args)
+    start = time.monotonic()
+    done = 0
+
+    def progress(sample: str, error: str | None) -> None:
+        nonlocal done
+        done += 1
+        rate = done / max(time.monotonic() - start, 1e-9)
+        state = "built" if error is None else f"failed: {error}"
+        print(f"[{weather}] sample {sample} {state} ({done}/{args.frames}, {rate:.2f} samples/s)", flush=True)
+
+    try:
+        rigged = set_up(session, carla, client, args, weather, rig_file, None, online=True)
+        settings = {"town": session.world.get_map().name, "weather": weather, "session": uuid.uuid4().hex}
+        start = time.monotonic()
+        report = build_dataset(online_source(session, rigged, args, settings), out, progress=progress)
+    finally:
+        session.destroy()
+    if report.failed:
+        first = sorted(report.failed)[0]
+        raise CarlaCaptureError(f"{out}: {len(report.failed)} of {len(report.samples)} samples failed (sample {first}: "
+                                f"{report.failed[first]})")
+    return out
 
 
 def street_frame(k: int, prev: dict, curr: dict, session, tags: str):
@@ -591,8 +661,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.town:
             client.load_world(args.town)
         for weather in weathers:
-            out = capture_weather(carla, client, args, weather, rig)
-            print(f"[{weather}] capture written to {out}")
+            if args.build is not None:
+                out = build_weather(carla, client, args, weather, rig)
+                print(f"[{weather}] dataset built in {out}")
+            else:
+                out = capture_weather(carla, client, args, weather, rig)
+                print(f"[{weather}] capture written to {out}")
     except (JaxfishError, FileNotFoundError) as e:  # bad options, calibration files, unknown presets
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -13,7 +13,8 @@ works, which is how the tests drive them). The program's contract is the capture
 - **Records** of actors and the ego (`carla_actor_records`, `carla_ego_motion`, `carla_street_frame`).
 - **Writing** one frame in the capture layout (`write_carla_frame`, `finish_carla_header`), or
   assembling it in memory as a capture reader would decode it (`carla_frame_records`,
-  `carla_frame_sensors`, `CarlaImages.decoded`).
+  `carla_frame_sensors`, `CarlaImages.decoded`, `carla_frame`: a `jaxfish.pipeline.Frame`), and
+  a live session as the dataset builder's source (`CarlaSource`).
 
 The CARLA pixel codecs (depth, semantic, instance, BGRA, the DVS dtype) are `jaxfish.io`'s: io
 encodes and decodes, this package talks to the simulator. The core never imports it.
@@ -60,6 +61,7 @@ from ._sensors import imu_attributes as imu_attributes
 from ._sensors import lidar_attributes as lidar_attributes
 from ._sensors import radar_attributes as radar_attributes
 from ._sensors import set_blueprint_attributes as set_blueprint_attributes
+from ._source import CarlaSource as CarlaSource
 from ._version import CARLA_LATER_WEATHER_PRESETS as CARLA_LATER_WEATHER_PRESETS
 from ._version import CARLA_WEATHER_PRESETS as CARLA_WEATHER_PRESETS
 from ._version import SUPPORTED_CARLA_VERSIONS as SUPPORTED_CARLA_VERSIONS

@@ -9,16 +9,13 @@ from typing import Any
 
 import numpy as np
 
-from ..io._capture import actor_to_dict
+from ..io._capture import actor_to_dict, ego_record
 from ..io._json import to_json_text
+from ..pipeline import CameraFrame, CubeFaces, Frame, SensorRecords, ViewFrame, ViewImages, motion_from_records
 from ..scene import RADAR_DTYPE, SEMANTIC_LIDAR_DTYPE, StreetFrame
 from ._images import CarlaImages
 from ._readings import checked_events
 from ._version import CarlaCaptureError
-
-
-def _transform(location, rotation) -> dict[str, list[float]]:
-    return {"location": [float(v) for v in location], "rotation": [float(v) for v in rotation]}
 
 
 def _as_read(what: str, doc: Any) -> Any:
@@ -33,15 +30,7 @@ def carla_frame_records(street: StreetFrame) -> tuple[list[dict[str, Any]], dict
     for the frame `write_carla_frame` writes (JSON types: lists and floats)."""
     if not street.actors or street.actors[0].category != "ego":
         raise CarlaCaptureError(f"frame {street.frame}: the first actor must be the ego vehicle")
-    ego, motion = street.ego, street.ego_motion
-    ego_doc = {
-        "frame": street.frame, "timestamp_s": street.timestamp_s, "timestamp_prev_s": street.timestamp_s - street.dt_s,
-        "id": ego.id, "transform_prev": _transform(ego.location_prev, ego.rotation_prev),
-        "transform": _transform(ego.location, ego.rotation),
-        "velocity": list(motion.velocity), "acceleration": list(motion.acceleration),
-        "angular_velocity": list(motion.angular_velocity),
-        "bounding_box": {"location": list(ego.bbox_location), "extent": list(ego.bbox_extent)},
-    }
+    ego_doc = ego_record(street)
     actors = [actor_to_dict(a) for a in street.actors]
     where = f"frame {street.frame}"
     return _as_read(f"{where} actors.json", actors), _as_read(f"{where} ego.json", ego_doc)
@@ -64,8 +53,9 @@ def carla_frame_sensors(
     points = np.asarray(lidar, np.float32)
     if points.ndim != 2 or points.shape[1] != 4:
         raise CarlaCaptureError(f"{where}: lidar must be (N, 4) x, y, z, intensity, got shape {points.shape}")
-    out = {"lidar": points, "semantic_lidar": np.asarray(semantic_lidar).astype(SEMANTIC_LIDAR_DTYPE),
-           "radar": np.asarray(radar).astype(RADAR_DTYPE)}
+    out = {"lidar": np.ascontiguousarray(points),
+           "semantic_lidar": np.ascontiguousarray(np.asarray(semantic_lidar).astype(SEMANTIC_LIDAR_DTYPE)),
+           "radar": np.ascontiguousarray(np.asarray(radar).astype(RADAR_DTYPE))}
     for name, a in out.items():
         for field in a.dtype.names or (None,):
             values = a if field is None else a[field]
@@ -88,18 +78,18 @@ def carla_frame(
     radar: np.ndarray,
     imu: Mapping[str, Any],
     gnss: Mapping[str, Any],
-):
+) -> Frame:
     """One CARLA frame as a `jaxfish.pipeline.Frame`, from the same arrays `write_carla_frame` takes:
     ``faces[camera][face] = (prev, curr, dvs events)`` with the faces of every camera in the
-    capture's face order, ``bev = (prev, curr, height map at t)`` (or None), raw BGRA images.
+    capture's face order and the cameras in the order the frame lists them (`jaxfish.dataset`'s
+    sources use the dataset order FV, RV, MVL, MVR), ``bev = (prev, curr, height map at t)`` (or
+    None), raw BGRA images.
 
     The Frame equals, array for array, the one `jaxfish.dataset.CaptureSource` reads from the frame
     `write_carla_frame` writes from these arrays: the images decoded with `jaxfish.io`'s CARLA codecs
     (`CarlaImages.decoded`: RGB, 24-bit depth in metres, semantic tags), the records as their JSON
     files read back (`carla_frame_records`, `carla_frame_sensors`). ``tag_table`` is the capture's
     ``carla_semantic_tags`` (`carla_semantic_tags` of the server version)."""
-    from ..pipeline import CameraFrame, CubeFaces, Frame, SensorRecords, ViewFrame, motion_from_records
-
     actors, ego = carla_frame_records(street)
     sensors = carla_frame_sensors(street, lidar=lidar, semantic_lidar=semantic_lidar, radar=radar, imu=imu, gnss=gnss)
     camera_frames = []
@@ -114,11 +104,11 @@ def carla_frame(
     view = None
     if bev is not None:
         prev, curr, height = bev
-        images = curr.decoded("bev", "curr")
+        images = [im.decoded("bev", instant) for im, instant in ((prev, "prev"), (curr, "curr"))]
         hm = np.asarray(height, np.float32)
-        if hm.shape != images.rgb.shape[:2]:
-            raise CarlaCaptureError(f"bev: height map {hm.shape} does not match the image {images.rgb.shape[:2]}")
-        view = ViewFrame(images_prev=prev.decoded("bev", "prev"), images=images, height_m=hm)
+        if hm.shape != images[1].rgb.shape[:2]:
+            raise CarlaCaptureError(f"bev: height map {hm.shape} does not match the image {images[1].rgb.shape[:2]}")
+        view = ViewFrame(*(ViewImages(im.rgb, im.depth_m, im.semantic) for im in images), hm)
     return Frame(index=int(street.frame), carla_tags=str(tag_table), cameras=tuple(faces),
                  camera_frames=tuple(camera_frames), motion=motion_from_records(actors, ego), bev=view,
                  sensors=SensorRecords(ego=ego, **sensors))

@@ -69,6 +69,7 @@ from jaxfish.scene import (
     sensor_mounts,
 )
 from jaxfish.transforms import Pose, carla_camera_pose_to_opencv, carla_rotation_matrix
+from tests.helpers import tree_bytes
 from tests.tolerances import CARLA_HEIGHT_FROM_DEPTH_M, POSE_F64
 
 # The sizes of tests/io/test_capture.py's capture: the embedded scene's compiled renderers are shared.
@@ -907,3 +908,135 @@ def test_the_package_imports_without_the_carla_client(monkeypatch):
     monkeypatch.setitem(sys.modules, "carla", None)
     with pytest.raises(CarlaCaptureError, match=r"pip install 'jaxfish\[carla\]'"):
         package.import_carla()
+
+
+# ---------------------------------------------------------------------------- the online mode
+def _leaves_equal(a, b) -> None:
+    """Two pytrees (e.g. `jaxfish.pipeline.Frame`s): the same structure and static fields, and the
+    same arrays (dtype, shape, values)."""
+    import jax
+
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    assert ta == tb
+    for x, y in zip(la, lb, strict=True):
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.dtype == y.dtype and x.shape == y.shape
+        np.testing.assert_array_equal(x, y)
+
+
+def _online_argv(tmp_path, mode: str) -> list[str]:
+    calib = tmp_path / "calib"
+    if not calib.is_dir():  # header order MVL, RV; dataset order RV, MVL
+        rig = jf.default_rig()
+        jf.save_rig({n: rig[n].resize(32, 24) for n in ("MVL", "RV")}, calib)
+    return [mode, str(tmp_path / mode.strip("-")), "--frames", "2", "--warmup", "2", "--weather", "WetSunset",
+            "--calibration", str(calib), "--face-size", "8", "--bev-size", "8", "--front-size", "8", "6",
+            "--vehicles", "2", "--walkers", "1"]
+
+
+def test_the_online_mode_builds_from_the_frames_the_offline_capture_reads_back(script, tmp_path, monkeypatch, capsys):
+    """For the same (fake) ticks, the builder of the online mode reads, frame for frame and array for
+    array, what `CaptureSource` reads from the offline mode's capture, and writes the same sample files."""
+    import jaxfish.dataset
+    from jaxfish.dataset import CaptureSource, build_dataset
+
+    monkeypatch.setattr(script, "import_carla", lambda: _FakeCarla("0.9.13"))
+    assert script.main(_online_argv(tmp_path, "--out")) == 0
+    capture = tmp_path / "out" / "WetSunset"
+    seen: dict = {}
+
+    def spy(source, out_dir, **kwargs):  # the real builder, recording what it reads of the source
+        read = source.read
+        source.read = lambda index, **kw: seen.setdefault(index, read(index, **kw))
+        seen["source"] = source
+        return build_dataset(source, out_dir, **kwargs)
+
+    monkeypatch.setattr(jaxfish.dataset, "build_dataset", spy)
+    fake = _FakeCarla("0.9.13")
+    monkeypatch.setattr(script, "import_carla", lambda: fake)
+    assert script.main(_online_argv(tmp_path, "--build")) == 0
+    printed = capsys.readouterr().out
+    assert "sample 00001 built (2/2" in printed and "[WetSunset] dataset built in" in printed
+    assert not (tmp_path / "build" / "WetSunset" / "frames").exists()  # no capture written
+    # Everything spawned is gone; the online mode spawns no front view and no instance camera.
+    assert fake.world.actors == {} and not fake.world.settings.synchronous_mode
+    captured, online = CaptureSource(capture), seen["source"]
+    assert online.cameras == captured.cameras == ["RV", "MVL"] and online.faces == captured.faces
+    assert online.face_size == captured.face_size == 8 and online.carla_tags == captured.carla_tags == "0.9.10"
+    assert online.describe() == captured.describe()
+    for cam in captured.cameras:
+        assert online.calibration_bytes(cam) == captured.calibration_bytes(cam)
+    _leaves_equal(online.rig(), captured.rig())
+    _leaves_equal(online.bev_sensor(), captured.bev_sensor())
+    assert sorted(k for k in seen if k != "source") == captured.frames == [0, 1]
+    for k in captured.frames:
+        _leaves_equal(seen[k], captured.read(k))
+    # The builds: every sample file byte for byte (dataset.json and the markers name their source).
+    build_dataset(capture, tmp_path / "offline")
+    online_files, offline_files = (tree_bytes(d) for d in (tmp_path / "build" / "WetSunset", tmp_path / "offline"))
+    for files in (online_files, offline_files):
+        for name in [n for n in files if n == "dataset.json" or n.startswith(".done/")]:
+            del files[name]
+    assert sorted(online_files) == sorted(offline_files) and len(online_files) > 20
+    assert [n for n in online_files if online_files[n] != offline_files[n]] == []
+
+
+def test_the_online_mode_refuses_a_folder_it_cannot_build_into(script, tmp_path, monkeypatch, capsys):
+    from jaxfish.dataset import DatasetError
+    from jaxfish.io._folder import folder_lock
+
+    fake = _FakeCarla("0.9.13")
+    monkeypatch.setattr(script, "import_carla", lambda: fake)
+    argv = _online_argv(tmp_path, "--build")
+    folder = tmp_path / "build" / "WetSunset"
+    folder.mkdir(parents=True)
+    with folder_lock(folder, DatasetError, "build"):  # another build holds it
+        assert script.main(argv) == 2
+    assert f"error: {folder}: another jaxfish build is writing into this folder" in capsys.readouterr().err
+    (folder / ".done").mkdir()
+    (folder / ".done" / "00000.json").write_text("{}")  # samples of an earlier build: no resume
+    assert script.main(argv) == 2
+    assert "holds samples of an earlier build" in capsys.readouterr().err
+    (folder / ".done" / "00000.json").unlink()
+    (folder / ".done").rmdir()
+    (folder / "notes.txt").write_text("mine")
+    assert script.main(argv) == 2
+    assert "not empty and not a jaxfish dataset" in capsys.readouterr().err
+    assert fake.world.next_id == 100 and fake.world.actors == {}  # nothing spawned for any of them
+    with pytest.raises(SystemExit):
+        script.parse_args(argv + ["--out", str(tmp_path / "x")])  # --out and --build exclude each other
+
+
+def test_carla_source_reads_a_live_session_in_order(tmp_path):
+    from jaxfish.carla import CarlaSource
+    from jaxfish.dataset import EmbeddedSource
+
+    rig = {"FV": jf.default_rig()["FV"].resize(32, 24)}
+    embedded = EmbeddedSource(rig, frames=3, seed=1, config=SMALL)
+    calls = []
+
+    def next_frame(k):
+        calls.append(k)
+        if k == 2:
+            raise RuntimeError("time-out while waiting for the simulator")
+        return embedded.read(k)
+
+    source = CarlaSource(rig, config=SMALL, bev_camera_to_vehicle=sensor_mounts(rig, SMALL).bev_camera_to_vehicle,
+                         carla_version="0.9.12", frames=3, next_frame=next_frame, settings={"weather": "WetNoon"})
+    assert source.read(1).index == 1 and calls == [0, 1]  # frame 0 ticked on the way (and kept)
+    assert source.read(0, bev=False).bev is None and source.read(0).bev is not None and calls == [0, 1]
+    with pytest.raises(RuntimeError, match="time-out"):
+        source.read(2)
+    with pytest.raises(CarlaCaptureError, match="the session stopped at frame 2: RuntimeError: time-out"):
+        source.read(2)  # at once, without asking the simulator again
+    assert calls == [0, 1, 2]
+    with pytest.raises(CarlaCaptureError, match="frame 5 is not one of its 3 frames"):
+        source.read(5)
+    other = CarlaSource(rig, config=SMALL, bev_camera_to_vehicle=sensor_mounts(rig, SMALL).bev_camera_to_vehicle,
+                        carla_version="0.9.12", frames=4, next_frame=embedded.read, keep=1)
+    other.read(1)
+    with pytest.raises(CarlaCaptureError, match="frame 0 was read before and is gone"):
+        other.read(0)
+    assert source.fingerprint() != other.fingerprint() and source.carla_tags == "0.9.10"
+    assert source.constants_key() == other.constants_key()  # the same rig constants
