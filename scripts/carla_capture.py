@@ -11,6 +11,8 @@ controllers; the world runs in synchronous mode at 10 FPS (``fixed_delta_seconds
 fisheye camera of the calibration is rendered as five 90-degree cube faces (RGB, depth, semantic,
 0.9.14+ instance and DVS each), with one fixed exposure on every face. Frame k holds the ticks
 k (t-1) and k+1 (t). Everything spawned is destroyed, and the world's settings restored, on exit.
+``--build DATASET_DIR`` instead of ``--out`` builds the dataset while capturing, without writing a
+capture (``DATASET_DIR/<Preset>/``: the same sample files as capturing, then ``jaxfish build``).
 Options: ``--help``; details: ``docs/carla_capture.md``.
 """
 
