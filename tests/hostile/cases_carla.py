@@ -56,6 +56,27 @@ def _write_bad_view(tmp: Path) -> None:
                       radar=np.zeros(0, RADAR_DTYPE), imu={}, gnss={})
 
 
+def _source(frames):
+    import jaxfish as jf
+    from jaxfish.carla import CarlaSource
+    from jaxfish.scene import CaptureConfig, sensor_mounts
+
+    rig = {"FV": jf.default_rig()["FV"].resize(16, 12)}
+    config = CaptureConfig(face_size=4, bev_size=4, front_width=4, front_height=4)
+    return CarlaSource(rig, config=config, bev_camera_to_vehicle=sensor_mounts(rig, config).bev_camera_to_vehicle,
+                       carla_version="0.9.15", frames=frames, next_frame=lambda k: None)
+
+
+def _frame_with_bad_bev_height(tmp: Path):
+    from jaxfish.carla import CarlaImages, carla_frame
+    from jaxfish.io import DVS_EVENT_DTYPE
+
+    ok = CarlaImages(*(np.zeros((4, 4, 4), np.uint8),) * 3)
+    return carla_frame(_frame(), tag_table="0.9.10", faces={"FV": {"front": (ok, ok, np.zeros(0, DVS_EVENT_DTYPE))}},
+                       bev=(ok, ok, np.zeros((4, 5))), lidar=np.zeros((0, 4)), semantic_lidar=np.zeros(0),
+                       radar=np.zeros(0), imu={}, gnss={})
+
+
 def _call(name: str, *args, **kwargs):
     def call(tmp: Path):
         import jaxfish.carla
@@ -102,6 +123,10 @@ CASES = [
     Case("carla-frame-lidar-three-columns", call=lambda tmp: _sensors(lidar=np.zeros((2, 3), np.float32)),
          says=("frame 3: lidar must be (N, 4)",)),
     Case("carla-frame-gnss-nan", call=lambda tmp: _sensors(gnss={"latitude": math.nan}), says=("frame 3 gnss.json",)),
+    Case("carla-source-no-frames", call=lambda tmp: _source(0), says=("frames must be a positive integer",)),
+    Case("carla-source-frame-count-not-a-number", call=lambda tmp: _source("many"), says=("'many'",)),
+    Case("carla-frame-bev-height-of-another-size", call=_frame_with_bad_bev_height,
+         says=("bev: height map (4, 5) does not match the image (4, 4)",)),
     Case("carla-writer-view-semantic-three-channels", call=_write_bad_view, says=("bev: semantic_curr", "BGRA"),
          absent=("{tmp}/cap/frames/000003",)),
 ]
