@@ -15,7 +15,7 @@ import jaxfish
 
 ROOT = Path(jaxfish.__file__).resolve().parent
 DOCS = ROOT.parent / "docs"
-EDGE = {"io", "cli", "dataset"}
+EDGE = {"io", "cli", "dataset", "carla"}
 
 
 def _public_subpackages() -> list[str]:
