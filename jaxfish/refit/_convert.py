@@ -13,6 +13,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..cameras import AbstractCamera
 from ._fit import Correspondences, _default_tolerances, _free_mask, _solve, jit_project, jit_unproject
+from ._initial import INITIAL_FROM_PROFILE, initial_vector
 from ._parameters import (
     camera_from_intrinsics,
     canonical_model_name,
@@ -124,6 +125,8 @@ def _initial_from(source: AbstractCamera, model: str, uv, valid, top: float, dty
             k = np.linalg.lstsq(np.stack([theta ** (2 * i + 3) for i in range(4)], -1), radius / fx - theta,
                                 rcond=None)[0]
         vec = [fx, fy, cx, cy, *k]
+    elif model in INITIAL_FROM_PROFILE:
+        vec = initial_vector(model, fx, fy, cx, cy, theta, radius)
     elif model == "unified":
         vec = [fx, fy, cx, cy, 0.5]
     elif model == "extended_unified":
