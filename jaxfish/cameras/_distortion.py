@@ -28,6 +28,14 @@ have no ray: far beyond any lens, and it keeps the Newton solve (and its implici
 from overflowing squares."""
 
 
+def edge_slack(dtype) -> float:
+    """``1 + sqrt(eps)``: a point is inside a radial-tangential domain when ``r² <= r_max² (1 +
+    sqrt(eps))``. Undistorting the pixel of the edge itself lands beyond ``r_max`` by rounding
+    amplified by the small slope there (~1e-13 in float64); ``sqrt(eps)`` covers that and stays far
+    inside the `RADTAN_MARGIN_RAD` before the fold."""
+    return 1.0 + math.sqrt(eps_for(dtype))
+
+
 def as_distortion(d, n: int, lengths: tuple[int, ...], dtype, where: str) -> Array:
     """``d`` as an array of ``n`` coefficients (zero-padded from any length in ``lengths``)."""
     d = jnp.asarray(d, dtype=dtype)

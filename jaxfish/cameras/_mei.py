@@ -13,6 +13,7 @@ from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_i
 from ._distortion import (
     MAX_DISTORTED_RADIUS,
     as_distortion,
+    edge_slack,
     radial_guess,
     radtan_distort,
     radtan_r_max,
@@ -129,7 +130,7 @@ class MeiCamera(AbstractCamera):
 
     def _domain(self, c, x, y, dtype) -> Bool[Array, "*batch"]:
         r_max = self.r_max(dtype)
-        return (x * x + y * y <= r_max * r_max) & (unfolded(radtan_distort, c, x, y))
+        return (x * x + y * y <= r_max * r_max * edge_slack(dtype)) & (unfolded(radtan_distort, c, x, y))
 
     @eqx.filter_jit
     def project(
@@ -147,7 +148,7 @@ class MeiCamera(AbstractCamera):
         inv = 1.0 / jnp.where(front, denom, 1.0)
         x, y = x * inv, y * inv
         bound = jax.lax.stop_gradient(self.r_max(dtype))
-        inside = front & (x * x + y * y <= bound * bound)
+        inside = front & (x * x + y * y <= bound * bound * edge_slack(dtype))
         x, y = jnp.where(inside, x, 0.0), jnp.where(inside, y, 0.0)  # no overflow beyond the domain
         xd, yd = radtan_distort(c, x, y)
         u = self.fx.astype(dtype) * xd + self.cx.astype(dtype)
