@@ -96,3 +96,22 @@ def check_gradients(cam, uv: np.ndarray, *, eps: float = 1e-6) -> None:
     jac_uv = np.asarray(jax.jacfwd(lambda x: cam.unproject(x)[0])(uv[0]))
     num_uv = central_difference_jacobian(lambda x: np.asarray(cam.unproject(jnp.asarray(x))[0]), np.asarray(uv[0]), 1e-4)
     np.testing.assert_allclose(jac_uv, num_uv, rtol=1e-6, atol=1e-9)
+
+
+def check_batch_of_cameras(cam_a, cam_b) -> None:
+    """A batch of two cameras (stacked leaves) under ``jit(vmap)``: the same rays as each camera
+    alone, and a finite gradient of the masked rays with respect to both cameras' parameters."""
+    cams = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), cam_a, cam_b)
+    grid = image_grid(cam_a, n=8)
+    rays, valid = jax.jit(jax.vmap(lambda c, x: c.unproject(x), in_axes=(0, None)))(cams, grid)
+    for i, cam in enumerate((cam_a, cam_b)):
+        alone, valid_alone = cam.unproject(grid)
+        np.testing.assert_array_equal(np.asarray(valid[i]), np.asarray(valid_alone))
+        np.testing.assert_allclose(np.asarray(rays[i]), np.asarray(alone), rtol=0, atol=1e-12)
+
+    def loss(c):
+        r, v = jax.vmap(lambda cc: cc.unproject(grid))(c)
+        return jnp.sum(jnp.where(v[..., None], r, 0.0))
+
+    grads = jax.grad(loss)(cams)
+    assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grads))

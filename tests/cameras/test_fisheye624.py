@@ -111,3 +111,9 @@ def test_a_tangential_fold_is_invalid():
 
 def test_implicit_gradients():
     lens_laws.check_gradients(CAMERAS["aria"], np.array([[715.1, 716.4], [300.0, 200.0], [1100.0, 1200.0], [700.0, 90.0]]))
+
+
+def test_a_batch_of_cameras():
+    a = CAMERAS["separate_focals"]
+    lens_laws.check_batch_of_cameras(a, jf.Fisheye624(320.0, 321.0, 641.0, 480.0, (0.01, 0.0, 0.0, 0.0, 0.0, 0.0),
+                                                      width=1280, height=966))

@@ -114,3 +114,8 @@ def test_omega_at_or_beyond_pi_sees_nothing():
 
 def test_implicit_gradients():
     lens_laws.check_gradients(CAMERAS["wide"], np.array([[640.2, 481.7], [400.0, 300.0], [900.0, 700.0], [700.0, 100.0]]))
+
+
+def test_a_batch_of_cameras():
+    lens_laws.check_batch_of_cameras(CAMERAS["wide"], jf.FieldOfView(280.0, 281.0, 641.0, 480.0, 0.0, width=1280,
+                                                                     height=966))

@@ -113,3 +113,7 @@ def test_a_tangential_fold_is_invalid():
 def test_implicit_gradients():
     cam = CAMERAS["xi_above_1"]
     lens_laws.check_gradients(cam, np.array([[640.2, 481.7], [100.0, 200.0], [1100.0, 900.0], [700.0, 30.0]]))
+
+
+def test_a_batch_of_cameras():
+    lens_laws.check_batch_of_cameras(CAMERAS["xi_above_1"], CAMERAS["xi_below_1"])

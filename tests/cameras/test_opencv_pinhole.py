@@ -136,3 +136,9 @@ def test_a_thin_prism_fold_is_invalid():
 
 def test_implicit_gradients():
     lens_laws.check_gradients(CAMERAS["full"], np.array([[640.3, 360.8], [300.0, 150.0], [1000.0, 600.0], [900.0, 120.0]]))
+
+
+def test_a_batch_of_cameras():
+    a = CAMERAS["full"]
+    lens_laws.check_batch_of_cameras(a, jf.OpenCVPinhole(600.0, 601.0, 639.0, 359.0, FULL[:4] + (0.0,) * 8,
+                                                         width=1280, height=720))
