@@ -143,7 +143,8 @@ def _source_dtype(source: AbstractCamera):
 def initial_camera(source: AbstractCamera, model: str, *, theta_top: float | None = None) -> AbstractCamera:
     """A starting point for fitting ``model`` to ``source``: the source's principal point and
     focal lengths at the optical axis, radial coefficients by a linear least-squares fit of the
-    source's radius along +x up to ``theta_top`` (radial_poly and kannala_brandt), neutral shape
+    source's radius along +x up to ``theta_top`` (radial_poly and kannala_brandt), a fit of that
+    profile for mei, opencv, fov and fisheye624 (`_initial.initial_vector`), neutral shape
     parameters otherwise (α = 0.5, β = 1, ξ = 0)."""
     model = canonical_model_name(model)
     dtype = _source_dtype(source)

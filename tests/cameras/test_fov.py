@@ -73,7 +73,8 @@ def test_continues_beyond_90_degrees_monotonically_and_is_even_in_w():
 def test_pixel_ray_pixel_float64_and_float32(name):
     share = 0.5 if name == "wide" else 1.0  # the wide lens's image circle (r_d < pi / ω) lies inside the image
     lens_laws.check_pixel_ray_pixel(CAMERAS[name], atol=tol.ROUNDTRIP_PX_F64, min_valid=share)
-    lens_laws.check_pixel_ray_pixel(CAMERAS[name], atol=tol.MODEL_PX_F32, min_valid=share, dtype=jnp.float32)
+    if name == "narrow":  # float32, eager / jit / vmap: one camera (each is a compile of the Newton solve)
+        lens_laws.check_pixel_ray_pixel(CAMERAS[name], atol=tol.MODEL_PX_F32, min_valid=share, dtype=jnp.float32, three=True)
 
 
 @pytest.mark.parametrize("name", list(CAMERAS))

@@ -61,7 +61,8 @@ def test_without_distortion_it_is_the_unified_camera(jit_project, jit_unproject)
 @pytest.mark.parametrize("name", list(CAMERAS))
 def test_pixel_ray_pixel_float64_and_float32(name):
     lens_laws.check_pixel_ray_pixel(CAMERAS[name], atol=tol.ROUNDTRIP_PX_F64, min_valid=0.5)
-    lens_laws.check_pixel_ray_pixel(CAMERAS[name], atol=tol.MODEL_PX_F32, min_valid=0.5, dtype=jnp.float32)
+    if name == "xi_above_1":  # float32, eager / jit / vmap: one camera (each is a compile of the Newton solve)
+        lens_laws.check_pixel_ray_pixel(CAMERAS[name], atol=tol.MODEL_PX_F32, min_valid=0.5, dtype=jnp.float32, three=True)
 
 
 @pytest.mark.parametrize("name", list(CAMERAS))

@@ -89,7 +89,8 @@ def test_unprojection_agrees_with_cv2_undistort_points():
 @pytest.mark.parametrize("name", list(CAMERAS))
 def test_pixel_ray_pixel_float64_and_float32(name):
     lens_laws.check_pixel_ray_pixel(CAMERAS[name], atol=tol.ROUNDTRIP_PX_F64, min_valid=MIN_VALID[name])
-    lens_laws.check_pixel_ray_pixel(CAMERAS[name], atol=tol.MODEL_PX_F32, min_valid=MIN_VALID[name], dtype=jnp.float32)
+    if name == "radtan":  # float32, eager / jit / vmap: one camera (each is a compile of the Newton solve)
+        lens_laws.check_pixel_ray_pixel(CAMERAS[name], atol=tol.MODEL_PX_F32, min_valid=MIN_VALID[name], dtype=jnp.float32, three=True)
 
 
 @pytest.mark.parametrize("name", list(CAMERAS))
