@@ -31,7 +31,11 @@ from .cameras import Cylindrical as Cylindrical
 from .cameras import DoubleSphere as DoubleSphere
 from .cameras import Equirectangular as Equirectangular
 from .cameras import ExtendedUnifiedCamera as ExtendedUnifiedCamera
+from .cameras import FieldOfView as FieldOfView
+from .cameras import Fisheye624 as Fisheye624
 from .cameras import KannalaBrandt as KannalaBrandt
+from .cameras import MeiCamera as MeiCamera
+from .cameras import OpenCVPinhole as OpenCVPinhole
 from .cameras import Orthographic as Orthographic
 from .cameras import Pinhole as Pinhole
 from .cameras import UnifiedCamera as UnifiedCamera

@@ -82,6 +82,10 @@ def _initial_camera(model: str, width: int, height: int, focal: float | None):
         "unified": [f, f, cx, cy, 0.5],
         "extended_unified": [f, f, cx, cy, 0.5, 1.0],
         "double_sphere": [f, f, cx, cy, 0.0, 0.5],
+        "mei": [2 * f, 2 * f, cx, cy, 1.0, 0.0, 0.0, 0.0, 0.0],
+        "opencv": [f, f, cx, cy] + [0.0] * 12,
+        "fov": [f, f, cx, cy, 1.0],
+        "fisheye624": [f, f, cx, cy] + [0.0] * 12,
     }[model]
     return camera_from_intrinsics(model, np.asarray(vec), width=width, height=height, dtype=np.float64)
 
@@ -277,7 +281,8 @@ DEFAULT_MAX_ERROR_PX = 2.0
 def convert(
     calibration: Path = typer.Argument(..., help="Calibration JSON of any lens model."),
     to: str = typer.Option(..., "--to", "-t", help="Target model: radial_poly (woodscape), kannala_brandt (kb), "
-                           "unified (ucm), extended_unified (eucm), double_sphere (ds)."),
+                           "unified (ucm), extended_unified (eucm), double_sphere (ds), mei, opencv, fov, "
+                           "fisheye624 (jaxfish.refit.MODEL_CLASSES)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output calibration JSON."),
     fov: str = typer.Option("image", help="Fit over the image's valid pixels ('image', default) or the source's "
                             "whole lens ('lens')."),

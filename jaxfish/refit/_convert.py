@@ -13,6 +13,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..cameras import AbstractCamera
 from ._fit import Correspondences, default_tolerances, free_parameter_mask, jit_project, jit_unproject, solve_refit
+from ._initial import INITIAL_FROM_PROFILE, initial_vector
 from ._parameters import (
     camera_from_intrinsics,
     canonical_model_name,
@@ -131,6 +132,8 @@ def _initial_from(source: AbstractCamera, model: str, uv, valid, top: float, dty
             k = np.linalg.lstsq(np.stack([theta ** (2 * i + 3) for i in range(4)], -1), radius / fx - theta,
                                 rcond=None)[0]
         vec = [fx, fy, cx, cy, *k]
+    elif model in INITIAL_FROM_PROFILE:
+        vec = initial_vector(model, fx, fy, cx, cy, theta, radius)
     elif model == "unified":
         vec = [fx, fy, cx, cy, 0.5]
     elif model == "extended_unified":
@@ -227,7 +230,8 @@ def shape_scan_starts(model: str, cx: float, cy: float, rays, uv_src, ok, *, wid
 def initial_camera(source: AbstractCamera, model: str, *, theta_top: float | None = None) -> AbstractCamera:
     """A starting point for fitting ``model`` to ``source``: the source's principal point and
     focal lengths at the optical axis, radial coefficients by a linear least-squares fit of the
-    source's radius along +x up to ``theta_top`` (radial_poly and kannala_brandt), neutral shape
+    source's radius along +x up to ``theta_top`` (radial_poly and kannala_brandt), a fit of that
+    profile for mei, opencv, fov and fisheye624 (`_initial.initial_vector`), neutral shape
     parameters otherwise (α = 0.5, β = 1, ξ = 0)."""
     model = canonical_model_name(model)
     dtype = _source_dtype(source)

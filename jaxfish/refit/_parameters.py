@@ -10,7 +10,15 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..cameras import MAX_IMAGE_SIDE, AbstractCamera, WoodScapeFisheye
+from ..cameras import (
+    MAX_IMAGE_SIDE,
+    AbstractCamera,
+    FieldOfView,
+    Fisheye624,
+    MeiCamera,
+    OpenCVPinhole,
+    WoodScapeFisheye,
+)
 from ..cameras._double_sphere import DoubleSphere
 from ..cameras._kannala_brandt import KannalaBrandt
 from ..cameras._unified import ExtendedUnifiedCamera, UnifiedCamera
@@ -21,6 +29,10 @@ MODEL_CLASSES: dict[str, type[AbstractCamera]] = {
     "unified": UnifiedCamera,
     "extended_unified": ExtendedUnifiedCamera,
     "double_sphere": DoubleSphere,
+    "mei": MeiCamera,
+    "opencv": OpenCVPinhole,
+    "fov": FieldOfView,
+    "fisheye624": Fisheye624,
 }
 """Model names (the ``intrinsic.model`` value of a calibration JSON) and their camera classes."""
 
@@ -30,9 +42,31 @@ PARAMETER_NAMES: dict[str, tuple[str, ...]] = {
     "unified": ("fx", "fy", "cx", "cy", "alpha"),
     "extended_unified": ("fx", "fy", "cx", "cy", "alpha", "beta"),
     "double_sphere": ("fx", "fy", "cx", "cy", "xi", "alpha"),
+    "mei": ("fx", "fy", "cx", "cy", "xi", "k1", "k2", "p1", "p2"),
+    "opencv": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4"),
+    "fov": ("fx", "fy", "cx", "cy", "w"),
+    "fisheye624": ("fx", "fy", "cx", "cy", "k0", "k1", "k2", "k3", "k4", "k5", "p0", "p1", "s0", "s1", "s2", "s3"),
 }
 """Intrinsic parameter names of each model, in vector order (pixels for k of radial_poly,
-fx, fy, cx, cy, cx_offset, cy_offset; dimensionless otherwise)."""
+fx, fy, cx, cy, cx_offset, cy_offset; radians for w of fov; dimensionless otherwise)."""
+
+FIELD_LAYOUTS: dict[str, tuple[tuple[str, int], ...]] = {
+    "mei": (("fx", 0), ("fy", 0), ("cx", 0), ("cy", 0), ("xi", 0), ("distortion", 4)),
+    "opencv": (("fx", 0), ("fy", 0), ("cx", 0), ("cy", 0), ("distortion", 12)),
+    "fov": (("fx", 0), ("fy", 0), ("cx", 0), ("cy", 0), ("w", 0)),
+    "fisheye624": (("fx", 0), ("fy", 0), ("cx", 0), ("cy", 0), ("k", 6), ("p", 2), ("s", 4)),
+}
+"""How a model's parameter vector (`PARAMETER_NAMES` order) lies in its camera's fields, in order:
+``(field, n)``, ``n = 0`` for a scalar field, else a field of ``n`` coefficients; the camera's
+constructor takes the fields positionally in this order."""
+
+
+def _layout_split(name: str, vector) -> list:
+    parts, i = [], 0
+    for _, n in FIELD_LAYOUTS[name]:
+        parts.append(vector[i] if n == 0 else vector[i:i + n])
+        i += max(n, 1)
+    return parts
 
 MAX_INTRINSIC = 1e7
 """Largest magnitude of an intrinsic parameter read from a calibration file (pixels, pixels per
@@ -56,6 +90,10 @@ def intrinsic_range_problem(model: str, key: str, value: float) -> str | None:
     focal = key in ("fx", "fy") or (model == "radial_poly" and key == "k1")
     if focal and value < MIN_FOCAL_PX:
         return f"a focal length must be at least {MIN_FOCAL_PX:g} pixels per radian, got {value!r}"
+    if model == "fov" and key == "w" and not abs(value) < math.pi:
+        return f"expected |w| below pi radians (the field of view of the ideal fisheye lens), got {value!r}"
+    if model == "mei" and key == "xi" and not value > -1:
+        return f"expected xi above -1 (at or below it the unified model sees nothing), got {value!r}"
     if model == "radial_poly" and key == "aspect_ratio":
         lo, hi = ASPECT_RATIO_RANGE
         if not lo <= value <= hi:
@@ -68,7 +106,6 @@ MODEL_ALIASES: dict[str, str] = {
     "kb": "kannala_brandt",
     "opencv_fisheye": "kannala_brandt",
     "ucm": "unified",
-    "mei": "unified",
     "eucm": "extended_unified",
     "ds": "double_sphere",
 }
@@ -101,6 +138,8 @@ def intrinsics_vector(camera: AbstractCamera) -> Float[Array, " P"]:
     """The intrinsic parameters of ``camera`` as one vector (order: `parameter_names`)."""
     name = canonical_model_name(camera)
     c: Any = camera
+    if name in FIELD_LAYOUTS:
+        return jnp.concatenate([getattr(c, f)[None] if n == 0 else getattr(c, f) for f, n in FIELD_LAYOUTS[name]])
     if name == "radial_poly":
         parts = [c.k, c.cx_offset[None], c.cy_offset[None], c.aspect_ratio[None]]
     elif name == "kannala_brandt":
@@ -120,6 +159,9 @@ def with_intrinsics(camera: AbstractCamera, vector: Float[Array, " P"]) -> Abstr
     n = len(PARAMETER_NAMES[name])
     if vector.shape != (n,):
         raise ValueError(f"with_intrinsics: a {name} camera has {n} parameters, got a vector of shape {vector.shape}")
+    if name in FIELD_LAYOUTS:
+        fields = [f for f, _ in FIELD_LAYOUTS[name]]
+        return eqx.tree_at(lambda c: tuple(getattr(c, f) for f in fields), camera, tuple(_layout_split(name, vector)))
     if name == "radial_poly":
         return eqx.tree_at(lambda c: (c.k, c.cx_offset, c.cy_offset, c.aspect_ratio), camera,
                            (vector[0:4], vector[4], vector[5], vector[6]))
@@ -140,6 +182,8 @@ def camera_from_intrinsics(model: str, vector, *, width: int, height: int, dtype
     v = jnp.asarray(vector, dtype=dtype)
     if v.shape != (len(PARAMETER_NAMES[name]),):
         raise ValueError(f"camera_from_intrinsics: {name} needs {len(PARAMETER_NAMES[name])} parameters, got {v.shape}")
+    if name in FIELD_LAYOUTS:
+        return MODEL_CLASSES[name](*_layout_split(name, v), width=width, height=height, dtype=v.dtype)
     if name == "radial_poly":
         return WoodScapeFisheye(v[0:4], width=width, height=height, cx_offset=v[4], cy_offset=v[5],
                                 aspect_ratio=v[6], dtype=v.dtype)

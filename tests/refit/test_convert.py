@@ -74,7 +74,7 @@ def test_intrinsics_dict_roundtrip_and_errors():
     with pytest.raises(ValueError, match=r"intrinsic\.cx': missing"):
         intrinsics_from_dict({"model": "kb", "width": 10, "height": 10}, source="x.json")
     with pytest.raises(ValueError, match="unknown lens model"):
-        intrinsics_from_dict({"model": "fisheye624", "width": 10, "height": 10})
+        intrinsics_from_dict({"model": "no_such_lens", "width": 10, "height": 10})
     with pytest.raises(ValueError, match="fov"):
         convert_camera(_woodscape_odd(), "kb", fov="sensor")
 
