@@ -8,6 +8,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
@@ -123,6 +124,18 @@ class FTheta(AbstractCamera):
         r_lim, _ = invert_increasing(theta_of_radius, _residual, bw_sg, theta_lim, r_max,
                                      jnp.minimum(theta_lim / bw_sg[0], r_max), rtol=1e-12, atol=1e-12)
         return jax.lax.stop_gradient(r_lim), theta_lim
+
+    def with_fitted_inverse(self) -> FTheta:
+        """A copy whose forward polynomial ``fw`` is the least-squares fit of the exact inverse of
+        ``bw`` over the domain (NCore keeps both). Only the Newton start of `project` depends on
+        it; NumPy, not traceable."""
+        dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
+        bw = np.concatenate([[0.0], np.asarray(self.bw, dtype=np.float64)])
+        r_lim = float(self._limits(jnp.asarray(self.bw, dtype), dtype)[0])
+        r = np.linspace(0.0, r_lim, 1024)
+        theta = np.polynomial.polynomial.polyval(r, bw)
+        fw = np.linalg.lstsq(np.stack([theta**i for i in range(1, FTHETA_POLY_LENGTH + 1)], -1), r, rcond=None)[0]
+        return eqx.tree_at(lambda c: c.fw, self, jnp.asarray(fw, self.fw.dtype))
 
     @eqx.filter_jit
     def project(

@@ -7,6 +7,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
@@ -123,6 +124,24 @@ class OCamCalib(AbstractCamera):
         dtype = resolve_dtype(dtype, self.pol)
         pol = jax.lax.stop_gradient(self.pol.astype(dtype))
         return alpha_of_rho(pol, self.rho_max(dtype))
+
+    def with_fitted_inverse(self, *, max_error_px: float = 0.01) -> OCamCalib:
+        """A copy whose ``invpol`` is fitted again to the exact model (as OCamCalib's
+        ``findinvpoly``: the shortest polynomial in ``alpha - pi/2`` whose largest radius error
+        over the domain is below ``max_error_px``, else the longest, `OCAM_INVPOL_LENGTH`). Only
+        the Newton start of `project` depends on it; NumPy, not traceable."""
+        pol = np.asarray(self.pol, dtype=np.float64)
+        rho_max = float(self.rho_max(np.float64 if jax.config.jax_enable_x64 else np.float32))
+        rho = np.linspace(0.0, rho_max, 1024)
+        p = np.polynomial.polynomial.polyval(rho, pol)
+        t = np.arctan2(rho, -p) - math.pi / 2
+        best = np.zeros(OCAM_INVPOL_LENGTH)
+        for n in range(2, OCAM_INVPOL_LENGTH + 1):
+            coef = np.polynomial.polynomial.polyfit(t, rho, n - 1)
+            best = np.pad(coef, (0, OCAM_INVPOL_LENGTH - n))
+            if np.max(np.abs(np.polynomial.polynomial.polyval(t, coef) - rho)) < max_error_px:
+                break
+        return eqx.tree_at(lambda c: c.invpol, self, jnp.asarray(best, self.invpol.dtype))
 
     @eqx.filter_jit
     def project(

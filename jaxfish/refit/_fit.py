@@ -19,7 +19,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._numerics import resolve_dtype
 from ..cameras import AbstractCamera
 from ..transforms import Pose
-from ._parameters import intrinsics_vector, parameter_names, with_intrinsics
+from ._parameters import APPROXIMATION_PARAMETERS, intrinsics_vector, parameter_names, with_intrinsics
 
 LOSSES: tuple[str, ...] = ("linear", "huber", "cauchy", "soft_l1")
 """Robust losses: rho(s) of the squared per-point residual norm s (pixels²), scale c (pixels)."""
@@ -200,8 +200,11 @@ def _summarise(cam, rot, t, corr):
 
 
 def _free_mask(names: tuple[str, ...], fixed) -> tuple[bool, ...]:
+    # Parameters that move no projection (approximate inverse polynomials) stay fixed unless a
+    # boolean mask frees them.
+    approximations = {n for group in APPROXIMATION_PARAMETERS.values() for n in group}
     if fixed is None:
-        return tuple(True for _ in names)
+        return tuple(n not in approximations for n in names)
     if isinstance(fixed, str):
         fixed = (fixed,)
     fixed = list(fixed)
@@ -212,7 +215,7 @@ def _free_mask(names: tuple[str, ...], fixed) -> tuple[bool, ...]:
     unknown = [f for f in fixed if f not in names]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown} in fixed (parameters: {', '.join(names)})")
-    return tuple(n not in fixed for n in names)
+    return tuple(n not in fixed and n not in approximations for n in names)
 
 
 def _unpack(z, p0, scales, rot0, t0, fit_pose):
