@@ -12,7 +12,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
 from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
-from ._domain import invert_increasing
+from ._domain import bisection_guess, invert_increasing
 from ._pixel_radius import affine_solve, first_stationary_radius, polyder, polyval
 
 OCAM_POL_LENGTH = 8
@@ -22,6 +22,8 @@ OCAM_INVPOL_LENGTH = 24
 """Coefficients of the inverse polynomial (``ocam_model.invpol``), padded with zeros likewise."""
 _MAX_NEWTON_STEPS = 32
 _GUESS_STEPS = 3
+_GUESS_ANGLE_RAD = 1e-3
+"""An inverse-polynomial start farther than this from the solution is replaced by a bisection."""
 
 
 def alpha_of_rho(pol: Float[Array, " n"], rho: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
@@ -42,9 +44,22 @@ def _residual(rho, args):
 
 
 def _solve_rho(pol, alpha, rho_max, rho0):
+    """``rho`` with ``alpha_of_rho(pol, rho) = alpha`` on ``[0, rho_max]``: optimistix Newton (with its
+    bisection fallback, `invert_increasing`) on stopped-gradient inputs, then the implicit-function
+    derivative attached by one Newton step whose residual is differentiated and whose slope is
+    not (``rho - (R(rho) - sg R(rho)) / sg R'(rho)``: first derivatives exact by the implicit
+    function theorem). The linear solve of optimistix's own implicit adjoint is avoided here: it
+    received non-finite tangents inside `refit`'s Levenberg-Marquardt linearisation (the primal
+    and ``jax.jacfwd`` / ``jax.grad`` were finite)."""
     tol = 1e-11 if alpha.dtype == jnp.float64 else 4e-6
-    return invert_increasing(alpha_of_rho, _residual, pol, alpha, rho_max, rho0, rtol=tol, atol=tol,
-                             max_steps=_MAX_NEWTON_STEPS)
+    pol_sg, alpha_sg = jax.lax.stop_gradient(pol), jax.lax.stop_gradient(alpha)
+    rho, converged = invert_increasing(alpha_of_rho, _residual, pol_sg, alpha_sg, rho_max, rho0, rtol=tol, atol=tol,
+                                       max_steps=_MAX_NEWTON_STEPS)
+    p = polyval(pol_sg, rho)
+    slope = _dalpha_numerator(pol_sg, rho) / jnp.maximum(rho * rho + p * p, eps_for(alpha.dtype))
+    residual = alpha_of_rho(pol, rho) - alpha
+    correction = (residual - jax.lax.stop_gradient(residual)) / jnp.maximum(slope, eps_for(alpha.dtype))
+    return rho - correction, converged
 
 
 class OCamCalib(AbstractCamera):
@@ -183,6 +198,10 @@ class OCamCalib(AbstractCamera):
         steps: only a starting point for the optimistix solve."""
         invpol = jax.lax.stop_gradient(self.invpol.astype(dtype))
         rho = jnp.clip(polyval(invpol, alpha - math.pi / 2), 0.0, rho_max)
+        # Where invpol is far off (absent, or a polynomial being fitted), a bisection instead: the
+        # Newton solve must converge on its first try (its fallback would still be differentiated).
+        far = jnp.abs(alpha_of_rho(pol, rho) - alpha) > _GUESS_ANGLE_RAD
+        rho = jnp.where(far, bisection_guess(alpha_of_rho, pol, alpha, rho_max), rho)
         for _ in range(_GUESS_STEPS):
             p = polyval(pol, rho)
             slope = _dalpha_numerator(pol, rho) / jnp.maximum(rho * rho + p * p, eps_for(dtype))
