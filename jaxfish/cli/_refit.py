@@ -71,7 +71,7 @@ def _pose_dict(pose) -> dict[str, list[float]]:
 def _initial_camera(model: str, width: int, height: int, focal: float | None):
     import numpy as np
 
-    from ..refit import camera_from_intrinsics, canonical_model_name
+    from ..refit import PARAMETER_NAMES, camera_from_intrinsics, canonical_model_name
 
     model = canonical_model_name(model)
     f = focal if focal is not None else width / math.pi  # equidistant lens spanning 180 degrees
@@ -82,6 +82,9 @@ def _initial_camera(model: str, width: int, height: int, focal: float | None):
         "unified": [f, f, cx, cy, 0.5],
         "extended_unified": [f, f, cx, cy, 0.5, 1.0],
         "double_sphere": [f, f, cx, cy, 0.0, 0.5],
+        "ocamcalib": [cy, cx, 1.0, 0.0, 0.0, -f] + [0.0] * (len(PARAMETER_NAMES["ocamcalib"]) - 6),
+        "ftheta": [cx, cy, 1.0 / f] + [0.0] * 9 + [math.pi, 1.0, 0.0, 0.0],
+        "carla_wide_angle": [2 * math.degrees(height / (2 * f)), 0.0, 0.0, 0.0, 0.0],
     }[model]
     return camera_from_intrinsics(model, np.asarray(vec), width=width, height=height, dtype=np.float64)
 
@@ -272,7 +275,8 @@ def refit(
 def convert(
     calibration: Path = typer.Argument(..., help="Calibration JSON of any lens model."),
     to: str = typer.Option(..., "--to", "-t", help="Target model: radial_poly (woodscape), kannala_brandt (kb), "
-                           "unified (ucm), extended_unified (eucm), double_sphere (ds)."),
+                           "unified (ucm), extended_unified (eucm), double_sphere (ds), ocamcalib, ftheta, "
+                           "carla_wide_angle."),
     out: Path = typer.Option(..., "--out", "-o", help="Output calibration JSON."),
     fov: str = typer.Option("lens", help="Sample rays up to the source's theta_max ('lens') or the image's ('image')."),
     theta_max_deg: float | None = typer.Option(None, help="Sample rays up to this incidence angle instead (degrees)."),
