@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import equinox as eqx
 import jax
@@ -152,7 +153,9 @@ class OCamCalib(AbstractCamera):
         t = np.arctan2(rho, -p) - math.pi / 2
         best = np.zeros(OCAM_INVPOL_LENGTH)
         for n in range(2, OCAM_INVPOL_LENGTH + 1):
-            coef = np.polynomial.polynomial.polyfit(t, rho, n - 1)
+            with warnings.catch_warnings():  # high degrees are poorly conditioned: the error test decides
+                warnings.simplefilter("ignore", np.exceptions.RankWarning)
+                coef = np.polynomial.polynomial.polyfit(t, rho, n - 1)
             best = np.pad(coef, (0, OCAM_INVPOL_LENGTH - n))
             if np.max(np.abs(np.polynomial.polynomial.polyval(t, coef) - rho)) < max_error_px:
                 break
