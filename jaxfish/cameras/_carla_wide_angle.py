@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._errors import CalibrationError
 from .._numerics import eps_for, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
 from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
 from ._kannala_brandt import _kb_theta_max, solve_theta_kb, theta_d_of_theta
@@ -129,8 +130,20 @@ class CarlaWideAngle(AbstractCamera):
         when the attributes do not (they must agree when both do). Other attributes (``role_name``,
         post-processing, ``fov_mask``, ...) do not change the geometry and are ignored; a non-zero
         ``focal_length`` (which overrides the fov-derived focal length), ``equirectangular`` or
-        ``perspective`` re-rendering change it and raise ``ValueError``, as does an unknown
-        ``camera_model`` (CARLA silently falls back to perspective) or a non-numeric value."""
+        ``perspective`` re-rendering change it and raise `CalibrationError` (a ``ValueError``)
+        naming the attribute, as does an unknown ``camera_model`` (CARLA silently falls back to
+        perspective), a non-numeric value or a ``fov`` the lens cannot image."""
+        try:
+            return cls._from_blueprint(attributes, width, height, dtype)
+        except CalibrationError:
+            raise
+        except ValueError as e:
+            raise CalibrationError(str(e)) from None
+
+    @classmethod
+    def _from_blueprint(cls, attributes, width, height, dtype) -> CarlaWideAngle:
+        if not isinstance(attributes, Mapping):
+            raise ValueError(f"blueprint attributes: expected a mapping of names to strings, got {type(attributes).__name__}")
 
         def number(key: str, default: float) -> float:
             if key not in attributes:
@@ -154,7 +167,8 @@ class CarlaWideAngle(AbstractCamera):
         for key, given, default in (("image_size_x", width, 800), ("image_size_y", height, 600)):
             value = number(key, float(default) if given is None else float(given))
             if value != int(value) or value <= 0:
-                raise ValueError(f"blueprint attribute {key!r}: expected a positive whole number, got {attributes[key]!r}")
+                raise ValueError(f"blueprint attribute {key!r}: expected a positive whole number, "
+                                 f"got {attributes.get(key, given)!r}")
             if given is not None and int(value) != int(given):
                 raise ValueError(f"blueprint attribute {key!r}: {attributes[key]!r} disagrees with the image size {given}")
             sizes.append(int(value))
