@@ -58,7 +58,7 @@ class FTheta(AbstractCamera):
     forward polynomial ``fw1 θ + ... + fw5 θ⁵`` when given, else from ``theta / bw1``; implicit
     gradients), then ``(x, y) = r (X, Y) / sqrt(X² + Y²)`` and ``[u, v] = [cx, cy] + [[c, d],
     [e, 1]] [x, y]``. Both polynomials have no constant term (a constant would send the principal
-    point to a cone of rays; files with a non-zero one are refused by the readers). ``(cx, cy)``
+    point to a cone of rays: a file with a non-zero one is not representable). ``(cx, cy)``
     are in jaxfish's pixel-centre convention, which is NCore's.
 
     **Domain**: radii ``r`` in ``[0, r_max]`` where ``bw`` increases (`rho_max`: the image
