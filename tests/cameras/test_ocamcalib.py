@@ -277,3 +277,21 @@ def test_convert_a_fisheye_to_ocamcalib():
     # The refilled inverse polynomial is a good start (world2cam within its design accuracy).
     cam = result.camera
     assert np.abs(np.asarray(cam.invpol)).max() > 0
+
+
+def test_refit_holds_the_inverse_polynomial_fixed():
+    from jaxfish.refit import Correspondences, refit
+
+    truth = _camera()
+    uv = _pixels(N, seed=5)
+    rays, ok = truth.unproject(jnp.asarray(uv))
+    assert bool(jnp.all(ok))
+    start = jc.OCamCalib(np.asarray(POL) * np.array([1.01, 1, 0.98, 1, 1]), truth.invpol, xc=CENTRE["xc"] + 3.0,
+                         yc=CENTRE["yc"] - 2.0, **AFFINE, width=W, height=H)
+    corr = Correspondences(rays * 5.0, jnp.asarray(uv))
+    result = refit(start, corr, fit_pose=False, fixed=("a1", "a5", "a6", "a7", "c", "d", "e"))
+    assert not any(n.startswith("invpol") for n in result.parameter_names)  # they move no pixel
+    assert np.isfinite(np.asarray(result.standard_deviations)).all()
+    assert float(result.rms_px) < 1e-6
+    np.testing.assert_array_equal(np.asarray(result.camera.invpol), np.asarray(truth.invpol))
+    assert float(result.camera.xc) == pytest.approx(CENTRE["xc"], abs=1e-6)
