@@ -27,14 +27,17 @@ from .calibration import crop_fisheye as crop_fisheye
 from .calibration import default_rig as default_rig
 from .calibration import resize_fisheye as resize_fisheye
 from .cameras import AbstractCamera as AbstractCamera
+from .cameras import CarlaWideAngle as CarlaWideAngle
 from .cameras import Cylindrical as Cylindrical
 from .cameras import DoubleSphere as DoubleSphere
 from .cameras import Equirectangular as Equirectangular
 from .cameras import ExtendedUnifiedCamera as ExtendedUnifiedCamera
 from .cameras import FieldOfView as FieldOfView
 from .cameras import Fisheye624 as Fisheye624
+from .cameras import FTheta as FTheta
 from .cameras import KannalaBrandt as KannalaBrandt
 from .cameras import MeiCamera as MeiCamera
+from .cameras import OCamCalib as OCamCalib
 from .cameras import OpenCVPinhole as OpenCVPinhole
 from .cameras import Orthographic as Orthographic
 from .cameras import Pinhole as Pinhole

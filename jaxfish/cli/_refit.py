@@ -71,7 +71,7 @@ def _pose_dict(pose) -> dict[str, list[float]]:
 def _initial_camera(model: str, width: int, height: int, focal: float | None):
     import numpy as np
 
-    from ..refit import camera_from_intrinsics, canonical_model_name
+    from ..refit import PARAMETER_NAMES, camera_from_intrinsics, canonical_model_name
 
     model = canonical_model_name(model)
     f = focal if focal is not None else width / math.pi  # equidistant lens spanning 180 degrees
@@ -86,6 +86,9 @@ def _initial_camera(model: str, width: int, height: int, focal: float | None):
         "opencv": [f, f, cx, cy] + [0.0] * 12,
         "fov": [f, f, cx, cy, 1.0],
         "fisheye624": [f, f, cx, cy] + [0.0] * 12,
+        "ocamcalib": [cy, cx, 1.0, 0.0, 0.0, -f] + [0.0] * (len(PARAMETER_NAMES["ocamcalib"]) - 6),
+        "ftheta": [cx, cy, 1.0 / f] + [0.0] * 9 + [math.pi, 1.0, 0.0, 0.0],
+        "carla_wide_angle": [2 * math.degrees(height / (2 * f)), 0.0, 0.0, 0.0, 0.0],
     }[model]
     return camera_from_intrinsics(model, np.asarray(vec), width=width, height=height, dtype=np.float64)
 
@@ -282,7 +285,7 @@ def convert(
     calibration: Path = typer.Argument(..., help="Calibration JSON of any lens model."),
     to: str = typer.Option(..., "--to", "-t", help="Target model: radial_poly (woodscape), kannala_brandt (kb), "
                            "unified (ucm), extended_unified (eucm), double_sphere (ds), mei, opencv, fov, "
-                           "fisheye624 (jaxfish.refit.MODEL_CLASSES)."),
+                           "fisheye624, ocamcalib, ftheta, carla_wide_angle (jaxfish.refit.MODEL_CLASSES)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output calibration JSON."),
     fov: str = typer.Option("image", help="Fit over the image's valid pixels ('image', default) or the source's "
                             "whole lens ('lens')."),

@@ -39,7 +39,7 @@ import numpy as np
 from .._errors import CalibrationError, JaxfishError
 from ..calibration import Calibration
 from ..cameras import WoodScapeFisheye
-from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict
+from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict, intrinsics_vector
 from ..transforms import CARLA_TO_ISO, Pose
 from ._calibration_json import (
     SYNWOODSCAPE_TRANSLATION_KEY,
@@ -206,7 +206,7 @@ def camera_calibration_from_dict(data: Any, *, source: str = "<calibration>", dt
         raise CalibrationError(f"{source}: field 'extrinsic.quaternion': expected a unit quaternion, norm is {qn:.6g}")
     if flavor == "synwoodscape":
         t = CARLA_TO_ISO @ t  # CARLA (y right) -> ISO 8855 (y left), as `calibration_from_dict`
-    pose = Pose.from_quaternion_xyzw(q / qn, t, dtype=camera.fx.dtype)
+    pose = Pose.from_quaternion_xyzw(q / qn, t, dtype=intrinsics_vector(camera).dtype)  # every model (not all have fx)
     return Calibration(name, camera, pose, flavor)
 
 

@@ -18,9 +18,11 @@ from ._fit import refit as refit
 from ._fit import reprojection_residuals as reprojection_residuals
 from ._fit import robust_rho as robust_rho
 from ._fit import rotation_from_vector as rotation_from_vector
+from ._parameters import APPROXIMATION_PARAMETERS as APPROXIMATION_PARAMETERS
 from ._parameters import MODEL_ALIASES as MODEL_ALIASES
 from ._parameters import MODEL_CLASSES as MODEL_CLASSES
 from ._parameters import PARAMETER_NAMES as PARAMETER_NAMES
+from ._parameters import STRING_PARAMETERS as STRING_PARAMETERS
 from ._parameters import camera_from_intrinsics as camera_from_intrinsics
 from ._parameters import canonical_model_name as canonical_model_name
 from ._parameters import intrinsics_from_dict as intrinsics_from_dict

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ..cameras import AbstractCamera
+from ..cameras import AbstractCamera, CarlaWideAngle, FTheta, OCamCalib
 from ._fit import Correspondences, default_tolerances, free_parameter_mask, jit_project, jit_unproject, solve_refit
 from ._initial import INITIAL_FROM_PROFILE, initial_vector
 from ._parameters import (
@@ -138,9 +138,57 @@ def _initial_from(source: AbstractCamera, model: str, uv, valid, top: float, dty
         vec = [fx, fy, cx, cy, 0.5]
     elif model == "extended_unified":
         vec = [fx, fy, cx, cy, 0.5, 1.0]
+    elif model in ("ocamcalib", "ftheta", "carla_wide_angle"):
+        return _initial_radial_polynomial(model, fx, fy, cx, cy, theta, radius, w, h, dtype)
     else:
         vec = [fx, fy, cx, cy, 0.0, 0.5]
     return camera_from_intrinsics(model, np.asarray(vec, dtype=np.float64), width=w, height=h, dtype=dtype)
+
+
+def _initial_radial_polynomial(model, fx, fy, cx, cy, theta, radius, w, h, dtype) -> AbstractCamera:
+    """Starting points of the pixel-radius polynomial models (OCamCalib, f-theta) and of CARLA's
+    Kannala-Brandt lens, from the source's focal lengths and its radius profile along +x."""
+    x = radius * (fy / fx)  # the profile in v-units (OCamCalib's c, NCore's c carry fx / fy)
+    enough = theta.size >= 8
+    if model == "ocamcalib":
+        pol = [-fy, 0.0, 0.0, 0.0, 0.0]
+        if enough:  # pol(rho) = -rho cos(alpha) / sin(alpha), with a1 = 0 as OCamCalib
+            scale = max(float(x.max()), 1.0)
+            s_ = x / scale
+            a = np.stack([np.ones_like(s_), s_**2, s_**3, s_**4], -1)
+            coef = np.linalg.lstsq(a, -x * np.cos(theta) / np.sin(theta), rcond=None)[0]
+            pol = [coef[0], 0.0, coef[1] / scale**2, coef[2] / scale**3, coef[3] / scale**4]
+        cam = OCamCalib(np.asarray(pol), xc=cy, yc=cx, c=fy / fx, width=w, height=h, dtype=dtype)
+        return cam.with_fitted_inverse()
+    if model == "ftheta":
+        bw = [1.0 / fy]
+        if enough:
+            scale = max(float(x.max()), 1.0)
+            s_ = x / scale
+            coef = np.linalg.lstsq(np.stack([s_**i for i in range(1, 6)], -1), theta, rcond=None)[0]
+            bw = [coef[i] / scale ** (i + 1) for i in range(5)]
+        cam = FTheta(cx, cy, np.asarray(bw), max_angle=math.pi, c=fx / fy, width=w, height=h, dtype=dtype)
+        return cam.with_fitted_inverse()
+    f = 0.5 * (fx + fy)
+    k = np.zeros(4)
+    if enough:
+        k = np.linalg.lstsq(np.stack([theta ** (2 * i + 3) for i in range(4)], -1), radius / fx - theta,
+                            rcond=None)[0]
+    grid = np.linspace(0.0, math.pi, 4097)
+    r = f * grid * (1 + k[0] * grid**2 + k[1] * grid**4 + k[2] * grid**6 + k[3] * grid**8)
+    rising = np.concatenate([[True], np.diff(r) > 0])
+    last = int(np.argmin(rising)) if not rising.all() else len(grid)
+    half = float(np.interp(h / 2, r[:last], grid[:last]))
+    return CarlaWideAngle("kannala-brandt", 2 * math.degrees(half), k, width=w, height=h, dtype=dtype)
+
+
+def refresh_approximations(camera: AbstractCamera) -> AbstractCamera:
+    """``camera`` with its approximate inverse polynomials (`APPROXIMATION_PARAMETERS`: OCamCalib's
+    ``invpol``, f-theta's forward polynomial) fitted again to its exact model; other cameras
+    unchanged. Conversions call it after fitting, so that the files they write carry inverse
+    polynomials the other tools can use."""
+    fit = getattr(camera, "with_fitted_inverse", None)
+    return camera if fit is None else fit()
 
 
 def _source_dtype(source: AbstractCamera):
@@ -313,7 +361,7 @@ def convert_camera(
             init, p0, free, jnp.eye(3, dtype=dtype)[None], jnp.zeros((1, 3), dtype), corr, False, jnp.asarray(0),
             jnp.asarray(1.0, dtype), int(max_steps), rtol, atol, with_covariance=False,
         )
-        camera = with_intrinsics(init, p)
+        camera = refresh_approximations(with_intrinsics(init, p))
         stats = _compare(camera, source, rays, uv_src, ok)
         key = (int(stats[-1]), float(stats[1]) if np.isfinite(float(stats[1])) else math.inf)
         if best is None or key < best[0]:

@@ -19,7 +19,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._numerics import resolve_dtype
 from ..cameras import AbstractCamera
 from ..transforms import Pose
-from ._parameters import intrinsics_vector, parameter_names, with_intrinsics
+from ._parameters import APPROXIMATION_PARAMETERS, intrinsics_vector, parameter_names, with_intrinsics
 
 LOSSES: tuple[str, ...] = ("linear", "huber", "cauchy", "soft_l1")
 """Robust losses: rho(s) of the squared per-point residual norm s (pixels²), scale c (pixels)."""
@@ -202,9 +202,12 @@ def _summarise(cam, rot, t, corr):
 def free_parameter_mask(names: tuple[str, ...], fixed: Iterable[str] | Sequence[bool] | str | None) -> tuple[bool, ...]:
     """Which of a model's parameters (``names``, in `parameter_names` order) a fit may move:
     ``fixed`` is None (all free), parameter names to hold, or a boolean mask over ``names`` (True:
-    held). ValueError for an unknown name or a mask of the wrong length."""
+    held). Parameters that move no projection (`APPROXIMATION_PARAMETERS`: approximate inverse
+    polynomials) stay held unless a boolean mask frees them. ValueError for an unknown name or a
+    mask of the wrong length."""
+    approximations = {n for group in APPROXIMATION_PARAMETERS.values() for n in group}
     if fixed is None:
-        return tuple(True for _ in names)
+        return tuple(n not in approximations for n in names)
     if isinstance(fixed, str):
         fixed = (fixed,)
     fixed = list(fixed)
@@ -215,7 +218,7 @@ def free_parameter_mask(names: tuple[str, ...], fixed: Iterable[str] | Sequence[
     unknown = [f for f in fixed if f not in names]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown} in fixed (parameters: {', '.join(names)})")
-    return tuple(n not in fixed for n in names)
+    return tuple(n not in fixed and n not in approximations for n in names)
 
 
 def _unpack(z, p0, scales, rot0, t0, fit_pose):
