@@ -45,6 +45,13 @@ def safe_norm(x: Float[Array, "*batch n"], *, keepdims: bool = False) -> Float[A
     return jnp.where(positive, jnp.sqrt(safe_sq), jnp.zeros_like(sq))
 
 
+def safe_sqrt(x: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+    """``sqrt(x)`` for ``x > 0``, else 0, with a finite value and gradient everywhere (the
+    gradient is 0 for ``x <= 0``)."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, jnp.ones_like(x))), jnp.zeros_like(x))
+
+
 def safe_hypot(*planes: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """`safe_norm` of coordinates given as separate planes (no minor-axis stack to vectorise)."""
     sq = sum(c * c for c in planes)
@@ -103,9 +110,8 @@ def stack_last(arrays: list[Array]) -> Array:
     """``jnp.stack(arrays, axis=-1)`` for full-frame hot paths.
 
     XLA on CPU fuses the producers of a minor-axis concatenate into a per-element loop that does
-    not vectorise (sin/cos/Newton work ran 5-10x slower); the components are materialised first
-    (an optimisation barrier), stacked along a major axis and transposed, which is ~0.6 ms per
-    full frame.
+    not vectorise; the components are materialised first (an optimisation barrier), stacked along
+    a major axis and transposed (one extra copy of the result).
     """
     arrays = jax.lax.optimization_barrier(list(arrays))
     return jnp.moveaxis(jnp.stack(arrays, axis=0), 0, -1)
@@ -117,8 +123,8 @@ _ATANF = (8.05374449538e-2, -1.38776856032e-1, 1.99777106478e-1, -3.33329491539e
 
 def arctan_unit(a: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """``arctan(a)`` for ``a`` in ``[0, 1]``. In float32 a polynomial that vectorises (Cephes
-    ``atanf``: within 3 ulp of the float64 value, where XLA's own ``arctan`` is within 5, and 8x
-    faster on CPU, where XLA calls the scalar libm function per element); other dtypes use
+    ``atanf``: within 3 ulp of the float64 value, where XLA's own ``arctan`` is within 5, and
+    vectorised on CPU, where XLA calls the scalar libm function per element); other dtypes use
     ``jnp.arctan`` (float64 keeps full precision). Differentiable everywhere on ``[0, 1]``."""
     if a.dtype != jnp.float32:
         return jnp.arctan(a)
@@ -134,7 +140,7 @@ def arctan_unit(a: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
 def arctan2(y: Float[Array, "*batch"], x: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """``jnp.arctan2(y, x)``; in float32 through `arctan_unit` of the smaller over the larger
     magnitude (the quadrant from the signs, signed zeros included, as IEEE ``atan2``), which
-    vectorises on CPU (8x faster). Other dtypes call ``jnp.arctan2`` itself."""
+    vectorises on CPU. Other dtypes call ``jnp.arctan2`` itself."""
     if jnp.result_type(y, x) != jnp.float32:
         return jnp.arctan2(y, x)
     a = _first_quadrant_angle(jnp.abs(y), jnp.abs(x))
@@ -156,7 +162,7 @@ def incidence_angle(chi: Float[Array, "*batch"], z: Float[Array, "*batch"]) -> F
     """``atan2(chi, z)`` for ``chi >= 0`` (the angle from the optical axis, in ``[0, pi]``) through
     `arctan_unit` of the smaller over the larger magnitude: in float64 within one ulp of the
     float64 ``atan2``, in float32 within a few ulp and vectorised (XLA's ``atan2`` calls libm per
-    element on CPU: 17 ms for a 1280 x 966 frame, 1 ms here). ``chi = z = 0`` gives 0."""
+    element on CPU). ``chi = z = 0`` gives 0."""
     a = _first_quadrant_angle(chi, jnp.abs(z))
     return jnp.where(z < 0, math.pi - a, a)
 

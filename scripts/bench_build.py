@@ -11,14 +11,12 @@ on the sample first; then ``2 x workers`` builds of the sample run as separate t
     uv run python scripts/bench_build.py --capture out/cap  # reuse a full-size capture
     uv run python scripts/bench_build.py --capture out/cap --no-dask --stages  # + each stage's wall / CPU time
 
-Goal: >= 1 sample/s after compile, peak < 4 GB. Measured on the 2-core CPU (shared with other
-jobs, load ~4): see docs/dataset.md "Speed" and the report printed by this script.
+Goal: >= 1 sample/s after compile, peak < 4 GB. Current figures: docs/performance.md.
 """
 
 from __future__ import annotations
 
 import argparse
-import concurrent.futures
 import os
 import resource
 import shutil
@@ -83,38 +81,24 @@ def _cpu_s() -> float:
     return t.user + t.system
 
 
+def _run_jobs(jobs) -> list:
+    return [p for job in jobs for p in job()]
+
+
 def bench_stages(capture: Path, scratch: Path, repeat: int) -> None:
-    """Wall and CPU seconds (all threads) of each stage of a sample, run one after the other
-    (`build_sample` overlaps the writes with the next camera's ground truth, so it takes less wall
-    time than their sum, but the same CPU time). The CPU seconds are the work per sample: a
-    2-core machine builds at most 2 / CPU samples per second, so 1 sample/s needs <= 2 CPU-s."""
-    import functools
-
+    """Wall and CPU seconds (all threads) of each stage of a sample through the pipeline, run one
+    after the other: read the frame (decode), fisheye ground truth, fisheye files, BEV ground truth,
+    BEV files (`build_sample` writes in a pool of threads, so it takes less wall time than their sum,
+    but the same CPU time). The CPU seconds are the work per sample: a 2-core machine builds at most
+    2 / CPU samples per second, so 1 sample/s needs <= 2 CPU-s."""
     import jax
-    import jax.numpy as jnp
-    import numpy as np
 
-    from jaxfish import groundtruth as gt
-    from jaxfish.dataset import FISHEYE_CAMERAS
-    from jaxfish.io import (
-        CaptureReader,
-        bev_sensor,
-        capture_bev_ground_truth,
-        capture_rig_ground_truth,
-        write_bev_ground_truth,
-        write_camera_ground_truth,
-        write_sample_ground_truth,
-    )
-    from jaxfish.reprojection import CubeRig, build_lut
+    from jaxfish.dataset import CaptureSource, LayoutSink, rig_constants_of
+    from jaxfish.pipeline import GroundTruthOptions, SampleTruth, bev_truth, sample_truth
 
-    reader = CaptureReader(capture)
-    cams = [c for c in FISHEYE_CAMERAS if c in reader.cameras]
-    rays_of = jax.jit(functools.partial(gt.pixel_rays, dtype=np.float32))
-    constants = {}
-    for c in cams:  # the per-calibration constants a build keeps per worker
-        model = reader.rig()[c].camera.astype(jnp.float32)
-        lut = build_lut(CubeRig(int(reader.meta["face_size"]), faces=tuple(reader.faces), dtype=jnp.float32), model)
-        constants[c] = (lut, rays_of(model), gt.event_map_from_lut(lut))
+    source = CaptureSource(capture, reuse_decoded=False)
+    constants = rig_constants_of(source)  # the per-calibration constants a build keeps per process
+    options = GroundTruthOptions(bev=False)
     stages: dict[str, list[tuple[float, float]]] = {}
 
     def timed(name, fn, *args):
@@ -123,43 +107,28 @@ def bench_stages(capture: Path, scratch: Path, repeat: int) -> None:
         stages.setdefault(name, []).append((time.perf_counter() - w, _cpu_s() - c))
         return result
 
-    def decode_all():
-        fresh = CaptureReader(capture)
-        jobs = [(c, face, inst) for inst in ("prev", "curr") for c in cams for face in fresh.faces]
-        with concurrent.futures.ThreadPoolExecutor(os.cpu_count() or 1) as pool:  # as the builder decodes
-            return len(list(pool.map(lambda j: fresh.face(0, j[0], j[1], j[2], actor_ids=False), jobs)))
-
-    def write_fisheye(out, rows):
-        return [write_camera_ground_truth(out, "00000", c, r, png_level=1)
-                for c, r in zip(cams, rows, strict=True)] + [write_sample_ground_truth(out, "00000", rows[0])]
-
-    def write_bev(out, res):
-        return (write_camera_ground_truth(out, "00000", "BEV", res, png_level=1)
-                + write_bev_ground_truth(out, "00000", res, png_level=1))
-
-    bev_rays = rays_of(bev_sensor(reader)[0]) if "bev" in reader.sensors() else None
     for i in range(repeat + 1):  # the first round compiles
         if i == 1:
             stages.clear()
         out = scratch / f"stages{i}"
-        fresh = CaptureReader(capture)
-        timed("decode the capture's cube faces (t-1 and t)", decode_all)
-        rows = timed("decode + fisheye ground truth + events", functools.partial(
-            capture_rig_ground_truth, constants=constants), fresh, 0, cams)
-        timed("write the fisheye files (inline)", write_fisheye, out, rows)
-        if bev_rays is not None:
-            res = timed("BEV ground truth", functools.partial(
-                capture_bev_ground_truth, rays=bev_rays), fresh, 0)
-            timed("write the BEV files (inline)", write_bev, out, res)
+        sink = LayoutSink(out)
+        frame = timed("read the frame (decode faces, BEV, sensors)", source.read, 0)
+        truth = timed("fisheye ground truth + events + renderings", sample_truth, frame, constants, options)
+        timed("write the fisheye and per-sample files (inline)", sink.write, "00000", truth)
+        if frame.bev is not None:
+            bev = timed("BEV ground truth", bev_truth, frame, constants, GroundTruthOptions())
+            bev_only = SampleTruth(index=truth.index, cameras=(), bev=bev, motion=truth.motion,
+                                   displacement_m=truth.displacement_m, corners_world=truth.corners_world,
+                                   corners_vehicle=truth.corners_vehicle, sensors=truth.sensors)
+            timed("write the BEV files (inline)", _run_jobs, sink.jobs("00000", bev_only)[:-2])  # the BEV's only
         shutil.rmtree(out)
     print(f"stages of one sample, run one after the other (median of {repeat}; wall / CPU seconds):")
     for name, runs in stages.items():
         wall, cpu = statistics.median(r[0] for r in runs), statistics.median(r[1] for r in runs)
-        print(f"  {name:48s} {wall:5.2f} / {cpu:5.2f}")
-    dec = statistics.median(r[1] for r in stages["decode the capture's cube faces (t-1 and t)"])
-    total = sum(statistics.median(r[1] for r in runs) for name, runs in stages.items()) - dec
-    print(f"  CPU per sample (the decode is counted once): {total:.2f} s = a 2-core bound of "
-          f"{2 / total:.2f} samples/s; 1 sample/s needs <= 2.00 CPU-s")
+        print(f"  {name:52s} {wall:5.2f} / {cpu:5.2f}")
+    total = sum(statistics.median(r[1] for r in runs) for runs in stages.values())
+    print(f"  CPU per sample: {total:.2f} s = a 2-core bound of {2 / total:.2f} samples/s; "
+          f"1 sample/s needs <= 2.00 CPU-s")
 
 
 def main() -> None:
@@ -174,7 +143,7 @@ def main() -> None:
         capture = args.capture
         if capture is None or not (capture / "capture.json").is_file():
             from jaxfish import default_rig
-            from jaxfish.io import synthesize_capture
+            from jaxfish.dataset import synthesize_capture
 
             capture = capture or scratch / "capture"
             t = time.perf_counter()

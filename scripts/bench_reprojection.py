@@ -120,7 +120,7 @@ def main() -> None:
         return resample_bilinear(r, lut)[0], resample_depth(d, lut)[0], resample_nearest(l, lut)[0]
 
     # Cameras in a Python loop of one jitted call each (vmap over cameras would batch the gathers,
-    # which XLA runs 2-4x slower on CPU).
+    # which XLA runs more slowly on CPU).
     def capture():
         return [per_camera(rgb[c], depth[c], lab[c], luts_list[c]) for c in range(len(cams))]
 

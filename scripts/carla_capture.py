@@ -11,6 +11,8 @@ controllers; the world runs in synchronous mode at 10 FPS (``fixed_delta_seconds
 fisheye camera of the calibration is rendered as five 90-degree cube faces (RGB, depth, semantic,
 0.9.14+ instance and DVS each), with one fixed exposure on every face. Frame k holds the ticks
 k (t-1) and k+1 (t). Everything spawned is destroyed, and the world's settings restored, on exit.
+``--build DATASET_DIR`` instead of ``--out`` builds the dataset while capturing, without writing a
+capture (``DATASET_DIR/<Preset>/``: the same sample files as capturing, then ``jaxfish build``).
 Options: ``--help``; details: ``docs/carla_capture.md``.
 """
 
@@ -21,24 +23,27 @@ import queue
 import random
 import sys
 import time
+import uuid
+import warnings
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from jaxfish import JaxfishError, default_rig, load_rig
-from jaxfish.io import (
+from jaxfish.carla import (
     CarlaCaptureError,
     CarlaExposure,
     CarlaImages,
+    CarlaSource,
     bev_pinhole,
     capture_sensor_specs,
     carla_actor_records,
     carla_ego_motion,
+    carla_frame,
     carla_geo_reference,
     carla_semantic_tags,
     carla_street_frame,
     carla_transform_tuple,
-    decode_depth,
     dvs_to_events,
     finish_carla_header,
     gnss_to_dict,
@@ -56,10 +61,16 @@ from jaxfish.io import (
     set_blueprint_attributes,
     validate_weather,
     with_bev_altitude,
-    write_capture_header,
     write_carla_frame,
 )
-from jaxfish.io._capture import rig_names
+from jaxfish.dataset import rig_names
+from jaxfish.io import (
+    check_capture_folder,
+    decode_depth,
+    write_capture_header,
+)
+from jaxfish.io._folder import folder_lock, remove_temporaries
+from jaxfish.reprojection import UndersampledFacesWarning, warn_undersampled_faces
 from jaxfish.scene import CaptureConfig, front_camera, sensor_mounts
 
 DT_S = 0.1  # 10 FPS, SynWoodScape's rate
@@ -89,7 +100,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="where the calibration's vehicle origin is in the ego actor frame: 'auto' (rear axle on the "
                         "ground for WoodScape-flavour files, the actor origin for SynWoodScape ones), 'actor', or 'X,Y,Z' "
                         "metres in CARLA axes")
-    p.add_argument("--face-size", type=int, default=768, help="cube face side S in pixels (fov 90)")
+    p.add_argument("--face-size", type=int, default=1152,
+                   help="cube face side S in pixels (fov 90); a size that undersamples the rig's fisheyes is warned about")
     p.add_argument("--bev-size", type=int, default=1024, help="BEV image side in pixels")
     p.add_argument("--bev-metres-per-pixel", type=float, default=0.04, help="BEV ground resolution")
     p.add_argument("--bev-altitude", type=float, default=500.0, help="height of the BEV pinhole above the ego (m)")
@@ -107,13 +119,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--dry-run", action="store_true",
                    help="print every sensor (blueprint, mount, attributes) and exit, without a server")
     p.add_argument("--carla-version", default="0.9.15", help="the CARLA release --dry-run assumes")
-    p.add_argument("--out", type=Path, default=None, help="output directory (one capture per weather preset); required "
-                                                          "unless --dry-run")
+    p.add_argument("--out", type=Path, default=None, help="output directory (one capture per weather preset); "
+                                                          "--out or --build is required unless --dry-run")
+    p.add_argument("--build", type=Path, default=None, metavar="DATASET_DIR",
+                   help="online mode: build the SynWoodScape dataset while capturing (one per weather preset, "
+                        "DATASET_DIR/<Preset>/), without writing a capture")
     args = p.parse_args(argv)
     if args.frames <= 0 or args.face_size <= 0 or args.vehicles < 0 or args.walkers < 0 or args.warmup < 1:
         p.error("--frames, --face-size, --warmup must be positive; --vehicles, --walkers non-negative")
-    if args.out is None and not args.dry_run:
-        p.error("--out is required (unless --dry-run)")
+    if args.out is not None and args.build is not None:
+        p.error("--out (write a capture) and --build (build a dataset while capturing) exclude each other")
+    if args.out is None and args.build is None and not args.dry_run:
+        p.error("--out or --build is required (unless --dry-run)")
     return args
 
 
@@ -400,38 +417,86 @@ def dry_run(args, rig) -> None:
         print(f"{'/'.join(spec.key):28s} {spec.blueprint:38s} location ({loc}) rotation ({rot}) {attrs}")
 
 
+def warn_undersampled(face_size: int, rig) -> None:
+    """``warning: ...`` on stderr when ``face_size``-px cube faces undersample one of the rig's
+    fisheyes (`jaxfish.reprojection.warn_undersampled_faces`), as ``jaxfish synth`` warns."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UndersampledFacesWarning)
+        message = warn_undersampled_faces(face_size, {name: calib.camera for name, calib in rig.items()})
+    if message:
+        print(f"warning: {message}", file=sys.stderr)
+
+
 def capture_weather(carla, client, args, weather: str, rig_file) -> Path:
-    """Spawn everything, capture ``args.frames`` frames under ``weather`` into ``OUT/weather``."""
+    """Spawn everything, capture ``args.frames`` frames under ``weather`` into ``OUT/weather``.
+
+    The capture folder must be new, empty or a jaxfish capture (`jaxfish.io.check_capture_folder`);
+    it is locked before anything is spawned and while the capture is written (a second writer
+    raises `CarlaCaptureError`), and the temporary files a killed run left there are removed."""
+    root = check_capture_folder(args.out / weather)
+    root.mkdir(parents=True, exist_ok=True)
+    with folder_lock(root, CarlaCaptureError, "capture writer"):
+        remove_temporaries(root)
+        _capture_locked(carla, client, args, weather, rig_file, root)
+    return root
+
+
+class Rigged:
+    """A session's rig and sensors once set up (`set_up`): what every frame of it needs."""
+
+    def __init__(self, rig, config, raised, specs, version, tags, required, dvs):
+        self.rig, self.config, self.raised, self.specs = rig, config, raised, specs
+        self.version, self.tags, self.required, self.dvs = version, tags, required, dvs
+
+    def views(self, args, names=("bev", "front")) -> dict:
+        """``{name: (camera, camera_to_vehicle)}`` of the views whose height maps are computed."""
+        cameras = {"bev": (bev_pinhole(self.config, args.bev_altitude), self.raised.bev_camera_to_vehicle),
+                   "front": (front_camera(self.config), self.raised.front_camera_to_vehicle)}
+        return {n: cameras[n] for n in names}
+
+
+def set_up(session, carla, client, args, weather: str, rig_file, header_root: Path | None, *,
+           online: bool = False) -> Rigged:
+    """Synchronous mode, the weather, the ego (and the rig moved onto it), traffic, every sensor,
+    the warm-up ticks; with ``header_root`` also the capture's header files (`write_capture_header`,
+    `finish_carla_header`). ``online``: without the sensors a dataset does not use (the front view,
+    the instance cameras)."""
     version = client.get_server_version()
-    tags = carla_semantic_tags(version)
     config, exposure = capture_config(args), capture_exposure(args)
-    root = args.out / weather
-    session = Session(carla, client, args)
     rng = random.Random(args.seed)
-    try:
-        session.synchronous()
-        session.world.set_weather(getattr(carla.WeatherParameters, weather))
-        points = session.spawn_ego(rng)
-        session.world.tick()  # the ego's physics (wheel positions) exist after a tick
-        rig = rig_on_actor(rig_file, vehicle_origin(args, rig_file, session.ego))
-        session.spawn_traffic(rng, points)
-        mounts = sensor_mounts(rig, config)
-        specs = capture_sensor_specs(rig, config, mounts, carla_version=version, bev_altitude_m=args.bev_altitude,
-                                     exposure=exposure)
-        raised = with_bev_altitude(mounts, bev_altitude_m=args.bev_altitude)
-        write_capture_header(root, rig, config, raised, seed=args.seed, source="carla", dt_s=DT_S)
-        finish_carla_header(root, carla_version=version, mounts=sensor_carla_mounts(raised),
+    session.synchronous()
+    session.world.set_weather(getattr(carla.WeatherParameters, weather))
+    points = session.spawn_ego(rng)
+    session.world.tick()  # the ego's physics (wheel positions) exist after a tick
+    rig = rig_on_actor(rig_file, vehicle_origin(args, rig_file, session.ego))
+    session.spawn_traffic(rng, points)
+    mounts = sensor_mounts(rig, config)
+    specs = capture_sensor_specs(rig, config, mounts, carla_version=version, bev_altitude_m=args.bev_altitude,
+                                 exposure=exposure)
+    if online:
+        specs = [spec for spec in specs if spec.key[:2] != ("view", "front") and spec.key[-1] != "instance"]
+    raised = with_bev_altitude(mounts, bev_altitude_m=args.bev_altitude)
+    if header_root is not None:
+        write_capture_header(header_root, rig, config, raised, seed=args.seed, source="carla", dt_s=DT_S)
+        finish_carla_header(header_root, carla_version=version, mounts=sensor_carla_mounts(raised),
                             bev_altitude_m=args.bev_altitude, config=config,
                             geo=carla_geo_reference(session.world.get_map(), carla),
                             extra={"town": session.world.get_map().name, "weather": weather})
-        required, dvs = session.attach_sensors(specs)
-        print(f"[{weather}] {len(specs)} sensors on the ego, {len(session.actor_ids) - 1} other actors; "
-              f"warming up {args.warmup} ticks")
-        for _ in range(args.warmup - 1):
-            session.warm_up()
+    required, dvs = session.attach_sensors(specs)
+    print(f"[{weather}] {len(specs)} sensors on the ego, {len(session.actor_ids) - 1} other actors; "
+          f"warming up {args.warmup} ticks")
+    for _ in range(args.warmup - 1):
+        session.warm_up()
+    return Rigged(rig, config, raised, specs, version, carla_semantic_tags(version), required, dvs)
+
+
+def _capture_locked(carla, client, args, weather: str, rig_file, root: Path) -> None:
+    session = Session(carla, client, args)
+    try:
+        rigged = set_up(session, carla, client, args, weather, rig_file, root)
+        rig, config, tags, required, dvs = rigged.rig, rigged.config, rigged.tags, rigged.required, rigged.dvs
+        views = rigged.views(args)
         prev = session.tick(required, dvs)
-        views = {"bev": (bev_pinhole(config, args.bev_altitude), raised.bev_camera_to_vehicle),
-                 "front": (front_camera(config), raised.front_camera_to_vehicle)}
         start = time.monotonic()
         # One writer thread: frame k is encoded and written while the server simulates the next ticks
         # (one thread only, so that frames reach capture.json in order); at most two frames wait.
@@ -452,32 +517,118 @@ def capture_weather(carla, client, args, weather: str, rig_file) -> Path:
             writer.shutdown(wait=True)
     finally:
         session.destroy()
-    return root
 
 
-def frame_writer(root, k, prev, curr, session, rig, config, views, tags):
-    """Assemble frame ``k`` from the ticks t-1 (``prev``) and t (``curr``): the actor records are read
-    from the server now; the returned function converts and writes the frame (any thread)."""
+def online_frames(session, rigged: Rigged, args, cameras):
+    """Tick the world and yield every frame (`jaxfish.pipeline.Frame`, `jaxfish.carla.carla_frame`)
+    of the capture as the reader of the offline mode's files would decode it, its fisheye cameras
+    in the order ``cameras``: the cube faces, the BEV and the other sensors stay in memory. The
+    world ticks when the consumer asks for the next frame."""
+    views = rigged.views(args, names=("bev",))
+    prev = session.tick(rigged.required, rigged.dvs)
+    for k in range(args.frames):
+        curr = session.tick(rigged.required, rigged.dvs)
+        street = street_frame(k, prev, curr, session, rigged.tags)
+        faces, out_views, sensors = frame_arrays(prev, curr, cameras, rigged.config, views)
+        yield carla_frame(street, tag_table=rigged.tags, faces=faces, bev=out_views["bev"], **sensors)
+        prev = curr
+
+
+def online_source(session, rigged: Rigged, args, settings: dict) -> CarlaSource:
+    """The session as the dataset builder's source: frame ``k`` is ticked when the builder reads it."""
+    state: dict = {}
+
+    def next_frame(k: int):
+        if "frames" not in state:
+            state["frames"] = online_frames(session, rigged, args, source.cameras)
+        return next(state["frames"])
+
+    source = CarlaSource(rigged.rig, config=rigged.config, bev_camera_to_vehicle=rigged.raised.bev_camera_to_vehicle,
+                         carla_version=rigged.version, frames=args.frames, next_frame=next_frame, settings=settings,
+                         seed=args.seed, dt_s=DT_S)
+    return source
+
+
+def build_weather(carla, client, args, weather: str, rig_file) -> Path:
+    """Spawn everything and build the dataset of ``args.frames`` frames under ``weather`` into
+    ``BUILD/weather`` while the world ticks (`jaxfish.dataset.build_dataset` of a
+    `jaxfish.carla.CarlaSource`), without writing a capture.
+
+    The folder must be new, empty or a jaxfish dataset without samples (a live session cannot
+    resume an earlier build); it is checked, and its lock tried, before anything is spawned (a
+    second writer raises `jaxfish.dataset.DatasetError`). A sample that fails is reported and the
+    program exits with status 2 after the others."""
+    from jaxfish.dataset import DONE_DIR, DatasetError, build_dataset, check_output_folder
+
+    out = check_output_folder(args.build / weather)
+    if any((out / DONE_DIR).glob("*.json")):
+        raise CarlaCaptureError(f"{out}: holds samples of an earlier build; a build while capturing cannot resume it "
+                                "(it is another simulation): use a new or empty folder")
+    out.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out, DatasetError, "build"):  # another writer: refused before anything is spawned
+        pass
+    session = Session(carla, client, args)
+    start = time.monotonic()
+    done = 0
+
+    def progress(sample: str, error: str | None) -> None:
+        nonlocal done
+        done += 1
+        rate = done / max(time.monotonic() - start, 1e-9)
+        state = "built" if error is None else f"failed: {error}"
+        print(f"[{weather}] sample {sample} {state} ({done}/{args.frames}, {rate:.2f} samples/s)", flush=True)
+
+    try:
+        rigged = set_up(session, carla, client, args, weather, rig_file, None, online=True)
+        settings = {"town": session.world.get_map().name, "weather": weather, "session": uuid.uuid4().hex}
+        start = time.monotonic()
+        report = build_dataset(online_source(session, rigged, args, settings), out, progress=progress)
+    finally:
+        session.destroy()
+    if report.failed:
+        first = sorted(report.failed)[0]
+        raise CarlaCaptureError(f"{out}: {len(report.failed)} of {len(report.samples)} samples failed (sample {first}: "
+                                f"{report.failed[first]})")
+    return out
+
+
+def street_frame(k: int, prev: dict, curr: dict, session, tags: str):
+    """Frame ``k``'s actor and ego records (`jaxfish.scene.StreetFrame`) from the ticks t-1
+    (``prev``) and t (``curr``): the world's actors are read from the server now."""
     snap_p, snap_c = prev["snapshot"], curr["snapshot"]
     ego_id = session.ego.id
     world_actors = session.world.get_actors()
     actors = list(world_actors.filter("vehicle.*")) + list(world_actors.filter("walker.pedestrian.*"))
     records = carla_actor_records(actors, snap_p, snap_c, ego_id=ego_id, tag_table=tags)
-    frame = carla_street_frame(k, snap_c.timestamp.elapsed_seconds, records, carla_ego_motion(snap_c.find(ego_id)),
-                               dt_s=DT_S, seed=session.args.seed)
+    return carla_street_frame(k, snap_c.timestamp.elapsed_seconds, records, carla_ego_motion(snap_c.find(ego_id)),
+                              dt_s=DT_S, seed=session.args.seed)
+
+
+def frame_arrays(prev: dict, curr: dict, cameras, config, views: dict) -> tuple[dict, dict, dict]:
+    """``(faces, views, sensors)`` of the ticks t-1 (``prev``) and t (``curr``) as `write_carla_frame`
+    takes them: ``faces[camera][face] = (prev, curr, dvs events)`` in the capture's face order,
+    ``views[name] = (prev, curr, height map at t)`` for the views of ``views`` (``{name: (camera,
+    camera_to_vehicle)}``), and the lidar, radar, IMU and GNSS readings at t."""
+    faces = {cam: {f: (images(prev, ("camera", cam, f)), images(curr, ("camera", cam, f)),
+                       curr[("camera", cam, f, "dvs")]) for f in config.faces} for cam in cameras}
+    out_views = {}
+    for name, (camera, pose) in views.items():
+        c = images(curr, ("view", name))
+        height = height_from_depth(decode_depth(c.depth), camera, pose)
+        out_views[name] = (images(prev, ("view", name)), c, height)
+    sensors = {name: curr[(name,)] for name in ("lidar", "semantic_lidar", "radar", "imu", "gnss")}
+    return faces, out_views, sensors
+
+
+def frame_writer(root, k, prev, curr, session, rig, config, views, tags):
+    """Assemble frame ``k`` from the ticks t-1 (``prev``) and t (``curr``): the actor records are read
+    from the server now; the returned function converts and writes the frame (any thread)."""
+    frame = street_frame(k, prev, curr, session, tags)
 
     def write() -> None:
-        faces = {cam: {f: (images(prev, ("camera", cam, f)), images(curr, ("camera", cam, f)),
-                           curr[("camera", cam, f, "dvs")]) for f in config.faces} for cam in rig}
-        out_views = {}
-        for name, (camera, pose) in views.items():
-            c = images(curr, ("view", name))
-            height = height_from_depth(decode_depth(c.depth), camera, pose)
-            out_views[name] = (images(prev, ("view", name)), c, height)
-        write_carla_frame(root, frame, faces=faces, views=out_views, lidar=curr[("lidar",)],
-                          semantic_lidar=curr[("semantic_lidar",)], radar=curr[("radar",)], imu=curr[("imu",)],
-                          gnss=curr[("gnss",)], prev_from_frame=k - 1 if k > 0 else None,
-                          dvs_missing=curr["dvs_missing"])
+        faces, out_views, sensors = frame_arrays(prev, curr, rig, config, views)
+        write_carla_frame(root, frame, faces=faces, views=out_views, prev_from_frame=k - 1 if k > 0 else None,
+                          dvs_missing=curr["dvs_missing"], **sensors)
 
     return write
 
@@ -496,6 +647,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         weathers = validate_weather(args.weather or ["ClearNoon"])
         rig = load_calibrations(args.calibration) if args.calibration else default_rig()
+        warn_undersampled(args.face_size, rig)
         if args.dry_run:
             parse_carla_version(args.carla_version)
             dry_run(args, rig)
@@ -511,8 +663,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.town:
             client.load_world(args.town)
         for weather in weathers:
-            out = capture_weather(carla, client, args, weather, rig)
-            print(f"[{weather}] capture written to {out}")
+            if args.build is not None:
+                out = build_weather(carla, client, args, weather, rig)
+                print(f"[{weather}] dataset built in {out}")
+            else:
+                out = capture_weather(carla, client, args, weather, rig)
+                print(f"[{weather}] capture written to {out}")
     except (JaxfishError, FileNotFoundError) as e:  # bad options, calibration files, unknown presets
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -15,7 +15,7 @@ import jaxfish
 
 ROOT = Path(jaxfish.__file__).resolve().parent
 DOCS = ROOT.parent / "docs"
-EDGE = {"io", "cli", "dataset"}
+EDGE = {"io", "cli", "dataset", "carla"}
 
 
 def _public_subpackages() -> list[str]:
@@ -24,8 +24,11 @@ def _public_subpackages() -> list[str]:
 
 def _public_names(module) -> dict[str, object]:
     names = {}
-    for name, obj in vars(module).items():
-        if name.startswith("_") or inspect.ismodule(obj) or name in {"annotations"}:
+    for name in dir(module):  # dir: the root's lazily re-exported names included
+        if name.startswith("_") or name in {"annotations"}:
+            continue
+        obj = getattr(module, name)
+        if inspect.ismodule(obj):
             continue
         names[name] = obj
     return names

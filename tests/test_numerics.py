@@ -65,3 +65,13 @@ def test_float32_arctan_polynomial_within_a_few_ulp_with_quadrants_and_gradients
     np.testing.assert_allclose(np.asarray(g[0]), z / r2, rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(np.asarray(g[1]), -chi / r2, rtol=1e-4, atol=1e-6)
     assert np.all(np.isfinite(np.asarray(jax.grad(incidence_angle, argnums=(0, 1))(jnp.float32(0), jnp.float32(0)))))
+
+
+def test_safe_sqrt_is_zero_with_finite_gradients_at_and_below_zero():
+    from jaxfish._numerics import safe_sqrt
+
+    x = jnp.asarray([-4.0, -1e-300, 0.0, 1e-300, 0.25, 9.0])
+    np.testing.assert_array_equal(np.asarray(safe_sqrt(x)), np.sqrt(np.maximum(np.asarray(x), 0.0)))
+    g = np.asarray(jax.vmap(jax.grad(safe_sqrt))(x))
+    assert np.all(np.isfinite(g)) and np.all(g[:3] == 0.0)
+    np.testing.assert_allclose(g[4:], 0.5 / np.sqrt(np.asarray(x[4:])), rtol=1e-15)

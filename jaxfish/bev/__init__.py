@@ -25,6 +25,8 @@ from ._grid import occupancy_map as occupancy_map
 from ._grid import vehicle_to_bev_pixels as vehicle_to_bev_pixels
 from ._ipm import IpmBev as IpmBev
 from ._ipm import ipm_semantics as ipm_semantics
+from ._metadata import BEV_AXES as BEV_AXES
+from ._metadata import bev_metadata as bev_metadata
 from ._metrics import VOID_CLASS as VOID_CLASS
 from ._metrics import BevScores as BevScores
 from ._metrics import IouScores as IouScores

@@ -12,12 +12,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._constants import FAR_DEPTH_M
 from .._numerics import materialize
 from ..cameras import AbstractCamera, Orthographic
-from ..groundtruth import FAR_RANGE_M
 from ..transforms import Pose
 from ._cameras import rig_rays, stack_cameras, stack_poses
-from ._grid import OCCUPANCY_MIN_HEIGHT_M, _check_down, bev_ground_points
+from ._grid import OCCUPANCY_MIN_HEIGHT_M, bev_ground_points, check_looks_down
 
 HEIGHT_QUANTUM_M = 1e-3
 """Heights are stored in the fusion z-buffer in steps of this many metres (1 mm)."""
@@ -83,7 +83,7 @@ def fuse_cameras(
     *,
     valid: Bool[ArrayLike, "N H W"] | None = None,
     rays: tuple[Float[ArrayLike, "N H W 3"], Bool[ArrayLike, "N H W"]] | None = None,
-    far_m: float = FAR_RANGE_M,
+    far_m: float = FAR_DEPTH_M,
     occupancy_min_height_m: float = OCCUPANCY_MIN_HEIGHT_M,
 ) -> BevFusion:
     """Fuse N cameras' range and semantic maps into the top view of ``bev_camera`` (mounted by
@@ -111,7 +111,7 @@ def fuse_cameras(
         raise ValueError(f"fuse_cameras: semantic must be integer {r.shape}, got {sem.dtype} {sem.shape}")
     if (cam.height, cam.width) != r.shape[1:]:
         raise ValueError(f"fuse_cameras: range maps {r.shape[1:]} do not match the cameras' images {(cam.height, cam.width)}")
-    _check_down(bev_camera_to_vehicle, "fuse_cameras: bev_camera_to_vehicle")
+    check_looks_down(bev_camera_to_vehicle, "fuse_cameras: bev_camera_to_vehicle")
     ok_valid = jnp.ones(r.shape, bool) if valid is None else jnp.asarray(valid, bool)
     if ok_valid.shape != r.shape:
         raise ValueError(f"fuse_cameras: valid must be {r.shape}, got {ok_valid.shape}")
@@ -129,7 +129,7 @@ def _fuse(poses, ray, ok, r, sem, ok_valid, bev_camera, bev_camera_to_vehicle, f
     rows = _camera_to_bev_rows(poses, bev_camera, bev_camera_to_vehicle)
     keys, cells = jax.vmap(_keys_and_cells, in_axes=(0, 0, 0, 0, 0, 0, None, None, None))(
         rows, ray, ok, r, sem, ok_valid, w, h, far_m)
-    # computed once into buffers: fused into the (serial) scatter, XLA on CPU runs it ~1.5x slower
+    # computed once into buffers: XLA on CPU would otherwise fuse them into the (serial) scatter
     keys, cells = materialize((keys, cells), r[0, 0, 0])
     buf = jnp.full((h * w,), jnp.iinfo(jnp.int32).min, jnp.int32)
     buf = buf.at[cells.reshape(-1)].max(keys.reshape(-1), mode="drop").reshape(h, w)
@@ -193,7 +193,7 @@ def fuse_cameras_dense(
     *,
     valid: Bool[ArrayLike, "N H W"] | None = None,
     rays: tuple[Float[ArrayLike, "N H W 3"], Bool[ArrayLike, "N H W"]] | None = None,
-    far_m: float = FAR_RANGE_M,
+    far_m: float = FAR_DEPTH_M,
     occupancy_min_height_m: float = OCCUPANCY_MIN_HEIGHT_M,
     fill_radius: int = GATHER_FILL_RADIUS,
     range_tolerance: float = GATHER_RANGE_TOLERANCE,

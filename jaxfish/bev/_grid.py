@@ -14,8 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, UInt8
 
+from .._constants import FAR_DEPTH_M
 from ..cameras import Orthographic
-from ..groundtruth import FAR_RANGE_M, apply_pose
+from ..groundtruth import apply_pose
 from ..transforms import Pose
 
 OCCUPANCY_MIN_HEIGHT_M = 0.2
@@ -35,9 +36,11 @@ def _pose32(pose: Pose) -> Pose:
     return Pose(pose.rotation_matrix, pose.translation, dtype=_F32)
 
 
-def _check_down(camera_to_vehicle: Pose, what: str) -> None:
-    """One pose looking straight down: R[:, 2] . (0, 0, -1) > `_DOWN_MIN_COSINE` (checked when the
-    pose is concrete; a traced pose inside ``jit`` is the caller's responsibility)."""
+def check_looks_down(camera_to_vehicle: Pose, what: str) -> None:
+    """Raise ValueError (the message starts with ``what``) unless ``camera_to_vehicle`` is one
+    pose (rotation ``(3, 3)``) looking straight down: ``R[:, 2] . (0, 0, -1) > _DOWN_MIN_COSINE``.
+    The direction is checked when the pose is concrete; a traced pose inside ``jit`` is the
+    caller's responsibility."""
     r = camera_to_vehicle.rotation_matrix
     if tuple(r.shape) != (3, 3):
         raise ValueError(f"{what}: camera_to_vehicle must be one pose (3 x 3 rotation), got {tuple(r.shape)}")
@@ -55,7 +58,7 @@ def bev_pixel_to_vehicle(camera: Orthographic, camera_to_vehicle: Pose) -> Float
     the ground point it sees (ISO 8855, metres), for a camera looking straight down
     (``camera_to_vehicle`` maps camera +z to vehicle -z). Standard mount: ``[[0, -m, x0 + m cy],
     [-m, 0, y0 + m cx]]``."""
-    _check_down(camera_to_vehicle, "bev_pixel_to_vehicle")
+    check_looks_down(camera_to_vehicle, "bev_pixel_to_vehicle")
     pose = _pose32(camera_to_vehicle)
     r, t = pose.rotation_matrix, pose.translation
     m = camera.metres_per_pixel.astype(_F32)
@@ -67,7 +70,7 @@ def bev_pixel_to_vehicle(camera: Orthographic, camera_to_vehicle: Pose) -> Float
 def bev_ground_points(camera: Orthographic, camera_to_vehicle: Pose) -> Float[Array, "H W 3"]:
     """Vehicle-frame ground point (z = 0) at the centre of every BEV pixel: where each pixel's ray
     meets the ground plane (float32, metres)."""
-    _check_down(camera_to_vehicle, "bev_ground_points")
+    check_looks_down(camera_to_vehicle, "bev_ground_points")
     pose = _pose32(camera_to_vehicle)
     grid = camera.pixel_grid(_F32)
     origin = apply_pose(pose, camera.ray_origins(grid).astype(_F32))
@@ -82,7 +85,7 @@ def vehicle_to_bev_pixels(
     camera: Orthographic, camera_to_vehicle: Pose, points: Float[ArrayLike, "*batch 3"]
 ) -> Float[Array, "*batch 2"]:
     """BEV pixel ``(u, v)`` (pixel-centre convention) straight above each vehicle-frame point."""
-    _check_down(camera_to_vehicle, "vehicle_to_bev_pixels")
+    check_looks_down(camera_to_vehicle, "vehicle_to_bev_pixels")
     p = jnp.asarray(points, _F32)
     if p.shape[-1:] != (3,):
         raise ValueError(f"vehicle_to_bev_pixels: points must be (..., 3), got {p.shape}")
@@ -96,7 +99,7 @@ def height_map(
     camera_to_vehicle: Pose,
     range_m: Float[ArrayLike, "H W"],
     *,
-    far_m: float = FAR_RANGE_M,
+    far_m: float = FAR_DEPTH_M,
 ) -> Float[Array, "H W"]:
     """Height (metres above the vehicle's ground plane z = 0) of the surface each BEV pixel sees,
     from the BEV depth (distance from the image plane along the ray; CARLA's planar depth of an
@@ -104,7 +107,7 @@ def height_map(
     r = jnp.asarray(range_m, _F32)
     if r.shape != (camera.height, camera.width):
         raise ValueError(f"height_map: range map {r.shape} does not match the BEV image {(camera.height, camera.width)}")
-    _check_down(camera_to_vehicle, "height_map")
+    check_looks_down(camera_to_vehicle, "height_map")
     grid = camera.pixel_grid(_F32)
     pts = camera.ray_origins(grid).astype(_F32) + r[..., None] * jnp.asarray([0.0, 0.0, 1.0], _F32)
     z = apply_pose(_pose32(camera_to_vehicle), pts)[..., 2]

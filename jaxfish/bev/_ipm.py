@@ -15,7 +15,7 @@ from ..groundtruth import apply_pose
 from ..transforms import Pose
 from ._cameras import stack_cameras, stack_poses
 from ._fusion import UNOBSERVED
-from ._grid import _check_down, bev_ground_points
+from ._grid import bev_ground_points, check_looks_down
 
 _F32 = jnp.float32
 
@@ -75,7 +75,7 @@ def ipm_semantics(
     ok_valid = jnp.ones(sem.shape, bool) if valid is None else jnp.asarray(valid, bool)
     if ok_valid.shape != sem.shape:
         raise ValueError(f"ipm_semantics: valid must be {sem.shape}, got {ok_valid.shape}")
-    _check_down(bev_camera_to_vehicle, "ipm_semantics: bev_camera_to_vehicle")
+    check_looks_down(bev_camera_to_vehicle, "ipm_semantics: bev_camera_to_vehicle")
     return _ipm(cam, poses, sem.astype(jnp.int32), ok_valid, bev_camera, bev_camera_to_vehicle)
 
 

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import resolve_dtype, safe_hypot, safe_norm
+from .._numerics import resolve_dtype, safe_hypot, safe_norm, safe_sqrt
 from ._base import (
     AbstractCamera,
     as_coordinates,
@@ -17,34 +17,60 @@ from ._base import (
     measurable_radius,
     point_direction,
 )
-from ._unified import _safe_sqrt, unified_w
+from ._unified import unified_w
 
 
-def double_sphere_w2(xi: Array, alpha: Array) -> Array:
-    """w2 = (w1 + ξ) / sqrt(2 w1 ξ + ξ² + 1): the projection domain is ``z > -w2 |p|``."""
+def double_sphere_cos_theta_max(xi: Array, alpha: Array) -> Array:
+    """Cosine of the end of the double sphere's domain (`DoubleSphere`): ``c* = -ξ(1 - w₁²) - w₁
+    sqrt(1 - ξ²(1 - w₁²))`` with ``w₁ = unified_w(α)``, for ξ <= 1; ``-1/ξ`` for ξ > 1 (where
+    ``d1 + ξ Z`` vanishes first). May lie below -1 (then the domain reaches pi)."""
     w1 = unified_w(alpha)
-    den = _safe_sqrt(2 * w1 * xi + xi * xi + 1)  # 0 only at xi = -1, alpha = 0.5 (degenerate): w2 = 0 there
-    return (w1 + xi) / jnp.where(den > 0, den, 1.0)
+    rest = 1 - w1 * w1
+    inner = -xi * rest - w1 * safe_sqrt(1 - xi * xi * rest)
+    return jnp.where(xi > 1, -1.0 / jnp.where(xi > 1, xi, 1.0), inner)
 
 
 class DoubleSphere(AbstractCamera):
-    """The double sphere model: a point is projected onto two unit spheres ``ξ`` apart, then by
-    a unified (α) projection.
+    """The double sphere model: a point is projected onto a unit sphere, shifted by ``ξ`` along the
+    axis, then projected by the unified model UCM(α).
 
-    With ``d1 = |(X, Y, Z)|`` and ``d2 = |(X, Y, ξ d1 + Z)|`` (OpenCV camera frame)::
+    With ``d1 = |(X, Y, Z)|``, the shifted point ``(X, Y, zz)``, ``zz = ξ d1 + Z``, and
+    ``d2 = |(X, Y, zz)|`` (OpenCV camera frame)::
 
-        u = fx X / (α d2 + (1-α)(ξ d1 + Z)) + cx,   v = fy Y / (α d2 + (1-α)(ξ d1 + Z)) + cy
+        u = fx X / (α d2 + (1-α) zz) + cx,   v = fy Y / (α d2 + (1-α) zz) + cy
 
-    ``ξ`` in (-1, 1] (ξ = -1 with α = 0.5 is degenerate: no valid ray), ``α`` in [0, 1]. Valid domain ``Z > -w2 d1`` (`double_sphere_w2`), i.e.
-    incidence angles below ``theta_max = arccos(-w2)``, beyond 90 degrees whenever
-    ``w1 + ξ > 0``. Unprojection (closed form)::
+    ``ξ`` in (-1, 1] (at ξ = -1 the optical axis itself is degenerate), ``α`` in [0, 1];
+    ξ = 0 is the UCM, ξ = 1 with α = 0 the stereographic projection.
+
+    Domain, from the construction: on the unit sphere (``d1 = 1``, incidence angle θ,
+    ``c = cos θ``) the normalised image radius is ``r = sin θ / D`` with
+    ``D = α d2 + (1-α)(ξ + c)`` and ``d2 = sqrt(1 + 2ξc + ξ²)``, and::
+
+        dr/dθ = (1 + ξc) (α (ξ + c) + (1-α) d2) / (d2 D²)
+
+    so a point is valid exactly where ``D > 0`` and the radius still increases:
+    ``α zz + (1-α) d2 > 0`` (and ``d1 + ξ Z > 0``, always true for ξ in (-1, 1] off the back
+    axis). Together: ``zz > -w1 d2`` with ``w1 = unified_w(α)``, the UCM(α) domain applied to the
+    shifted point. The shifted point's cosine ``zz / d2`` increases with ``c`` (derivative
+    ``(1 + ξc) / d2³``), so the domain is ``θ < theta_max``, ``cos(theta_max)`` the root of
+    ``(ξ + c)² = w1² (1 + 2ξc + ξ²)`` with ``ξ + c <= 0``::
+
+        cos(theta_max) = -ξ (1 - w1²) - w1 sqrt(1 - ξ² (1 - w1²))
+
+    (`double_sphere_cos_theta_max`; pi when that is <= -1). This is wider or narrower than the
+    paper's ``w2 = (w1 + ξ) / sqrt(2 w1 ξ + ξ² + 1)`` bound, which is not the model's boundary:
+    ξ = -0.9, α = 0.7 folds at 60.97 degrees (the paper's bound: 62.4), the stereographic
+    ξ = 1, α = 0 is valid up to 180 degrees (the paper's bound: 135).
+
+    Unprojection (closed form: the UCM(α) inverse, then the unique point of the unit sphere on
+    that ray from the shifted centre)::
 
         mz = (1 - α² r²) / (α sqrt(1 - (2α-1) r²) + 1 - α)
         ray = (mz ξ + sqrt(mz² + (1-ξ²) r²)) / (mz² + r²) (mx, my, mz) - (0, 0, ξ)
 
     defined for α <= 0.5 or ``r² <= 1/(2α-1)`` (``r`` = distance to the principal point in
-    focal units); a pixel is valid when its ray is in the domain. Pixel-centre convention;
-    finite values and gradients everywhere.
+    focal units, the image of the domain's rim); a pixel is valid when its ray is in the domain.
+    Pixel-centre convention; finite values and gradients everywhere.
 
     Fields: `fx`, `fy`, `cx`, `cy` (pixels), `xi`, `alpha`, `width`, `height` (static).
     """
@@ -76,11 +102,12 @@ class DoubleSphere(AbstractCamera):
         return jnp.stack([self.cx, self.cy], axis=-1)
 
     def theta_max(self, dtype=None) -> Float[Array, ""]:
-        """Supremum of the valid incidence angles (radians): ``arccos(-w2)``."""
+        """Supremum of the valid incidence angles (radians, exclusive), in closed form (class
+        docstring): pi when the whole sphere but the back axis is valid."""
         dtype = resolve_dtype(dtype, self.alpha)
         xi = jax.lax.stop_gradient(self.xi.astype(dtype))
         alpha = jax.lax.stop_gradient(self.alpha.astype(dtype))
-        return jnp.arccos(jnp.clip(-double_sphere_w2(xi, alpha), -1.0, 1.0))
+        return jnp.arccos(jnp.clip(double_sphere_cos_theta_max(xi, alpha), -1.0, 1.0))
 
     def project(
         self, points: Float[ArrayLike, "*batch 3"]
@@ -92,10 +119,10 @@ class DoubleSphere(AbstractCamera):
         x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
         d1 = safe_hypot(x, y, z)
         zz = xi * d1 + z
-        d2 = _safe_sqrt(x * x + y * y + zz * zz)
-        valid = finite & (d1 > 0) & (z > -double_sphere_w2(xi, alpha) * d1)
+        d2 = safe_sqrt(x * x + y * y + zz * zz)
         denom = alpha * d2 + (1 - alpha) * zz
-        valid = valid & (denom > 0)
+        rising = alpha * zz + (1 - alpha) * d2  # the sign of dr/dtheta (with d1 + xi z)
+        valid = finite & (d1 > 0) & (d1 + xi * z > 0) & (denom > 0) & (rising > 0)
         inv = 1.0 / jnp.where(valid, denom, jnp.ones_like(denom))
         u = self.fx.astype(dtype) * x * inv + self.cx.astype(dtype)
         v = self.fy.astype(dtype) * y * inv + self.cy.astype(dtype)
@@ -115,12 +142,12 @@ class DoubleSphere(AbstractCamera):
         mx, my = jnp.where(measurable, mx, 0.0), jnp.where(measurable, my, 0.0)
         r2 = mx * mx + my * my
         disc = 1 - (2 * alpha - 1) * r2
-        den = alpha * _safe_sqrt(disc) + 1 - alpha
+        den = alpha * safe_sqrt(disc) + 1 - alpha
         inside = ((alpha <= 0.5) | (disc >= 0)) & (den > 0)  # den = 0: alpha = 1 at or beyond the rim
         mz = (1 - alpha * alpha * r2) / jnp.where(den > 0, den, 1.0)
         disc2 = mz * mz + (1 - xi * xi) * r2
         inside = inside & (disc2 >= 0)
-        factor = (mz * xi + _safe_sqrt(disc2)) / (mz * mz + r2)
+        factor = (mz * xi + safe_sqrt(disc2)) / (mz * mz + r2)
         ray = jnp.stack([factor * mx, factor * my, factor * mz - xi], axis=-1)
         norm = safe_norm(ray, keepdims=True)
         ray = ray / jnp.where(norm > 0, norm, jnp.ones_like(norm))

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from .._numerics import resolve_dtype, safe_norm
+from .._numerics import resolve_dtype, safe_norm, safe_sqrt
 from ._base import (
     AbstractCamera,
     as_coordinates,
@@ -23,12 +23,6 @@ from ._base import (
     measurable_radius,
     point_direction,
 )
-
-
-def _safe_sqrt(x: Array) -> Array:
-    """sqrt that is 0 (value and gradient finite) for x <= 0."""
-    pos = x > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, jnp.ones_like(x))), jnp.zeros_like(x))
 
 
 def unified_w(alpha: Array) -> Array:
@@ -52,7 +46,7 @@ def eucm_project(cam, points, alpha, beta, name: str):
     beta = beta.astype(dtype)
     x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
     nonzero = finite & ((x != 0) | (y != 0) | (z != 0))
-    d = _safe_sqrt(beta * (x * x + y * y) + z * z)
+    d = safe_sqrt(beta * (x * x + y * y) + z * z)
     w = unified_w(alpha)
     valid = nonzero & (z > -w * d)
     denom = alpha * d + (1 - alpha) * z
@@ -74,7 +68,7 @@ def eucm_unproject(cam, uv, alpha, beta, name: str):
     mx, my = jnp.where(measurable, mx, 0.0), jnp.where(measurable, my, 0.0)
     r2 = mx * mx + my * my
     disc = 1 - (2 * alpha - 1) * beta * r2
-    den = alpha * _safe_sqrt(disc) + (1 - alpha)
+    den = alpha * safe_sqrt(disc) + (1 - alpha)
     inside = ((alpha <= 0.5) | (disc >= 0)) & (den > 0)  # den = 0: alpha = 1 at or beyond the domain's rim
     mz = (1 - beta * alpha * alpha * r2) / jnp.where(den > 0, den, 1.0)
     ray = jnp.stack([mx, my, mz], axis=-1)

@@ -82,21 +82,31 @@ def _write_view(out: Path, stem: str, meta: dict, semantic, height=None, occupan
 
 
 def _capture_items(source: Path, frames: str | None):
-    """Yield (id, bev camera, pose, maps, truth dict) per capture frame."""
+    """Yield (id, bev camera, pose, maps, truth dict) per capture frame (through `jaxfish.pipeline`:
+    each frame read once, the rig's constants built once)."""
     import numpy as np
 
-    from ..io import CaptureReader, capture_bev_ground_truth, capture_camera_maps
+    from ..dataset import CaptureSource, rig_constants_of
+    from ..io import CaptureError
+    from ..pipeline import GroundTruthOptions, bev_truth, camera_maps
 
-    reader = CaptureReader(source)
-    chosen = _parse_frames(frames, reader.frames)
-    luts = rays = None
+    src = CaptureSource(source, reuse_decoded=False)
+    chosen = _parse_frames(frames, src.frames)
+    if not src.has_bev():
+        src.reader.sensors()
+        raise CaptureError(f"{source / 'sensors.json'}: field 'bev' missing (the capture has no BEV camera)")
+    constants = rig_constants_of(src)
+    options = GroundTruthOptions()
     for frame in chosen:
-        truth = capture_bev_ground_truth(reader, frame)
-        maps = capture_camera_maps(reader, frame, luts=luts, rays=rays)
-        luts, rays = maps["luts"], maps["rays"]
-        yield (f"{frame:05d}", truth["camera"], truth["camera_to_vehicle"], maps,
-               {"semantic": np.asarray(truth["truth"].semantic), "height_m": truth["height_m"],
-                "occupancy": truth["occupancy"]})
+        f = src.read(frame, bev=True, sensors=False)
+        truth = bev_truth(f, constants, options)
+        cm = camera_maps(f, constants)
+        maps = {"names": list(cm.names), "cameras": list(cm.cameras), "cameras_to_vehicle": list(cm.cameras_to_vehicle),
+                "range_m": cm.range_m, "semantic": cm.semantic, "valid": cm.valid,
+                "rays": {k.name: k.rays for k in constants.cameras}, "range_resolution_rad": cm.range_resolution_rad}
+        yield (f"{frame:05d}", truth.camera, truth.camera_to_vehicle, maps,
+               {"semantic": np.asarray(truth.view.truth.semantic), "height_m": truth.height_m,
+                "occupancy": truth.occupancy})
 
 
 def _dataset_range_resolution(source: Path) -> float | None:
@@ -290,7 +300,7 @@ def _run(items, out: Path, kind: str, written: list[Path]):
     import numpy as np
 
     from .. import bev as jbev
-    from ..io import bev_metadata
+    from ..bev import bev_metadata
 
     score = _scores()
     rays = None

@@ -96,10 +96,11 @@ def stop_on_signals():
             signal.signal(sig, old)
 
 
-def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
+def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
               workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
               motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1, rebuild: bool = False):
-    """Run `jaxfish.dataset.build_dataset` with a rich progress bar (samples/s); returns the report.
+    """Run `jaxfish.dataset.build_dataset` of ``capture_dir`` (a capture directory or any
+    `jaxfish.dataset.FrameSource`) with a rich progress bar (samples/s); returns the report.
     SIGINT or SIGTERM stops the build (`jaxfish.dataset.BuildInterrupted`): one ``interrupted:``
     line on stderr (then one line per sample that failed before), exit status `INTERRUPTED_STATUS`."""
     try:
@@ -118,16 +119,15 @@ def run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, sch
         raise typer.Exit(INTERRUPTED_STATUS) from None
 
 
-def _run_build(capture_dir: Path, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
+def _run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
                workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
                motion_threshold_m: float, png_level: int, batch_frames: int, rebuild: bool):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from ..dataset import BuildOptions, build_dataset
-    from ..io import CaptureReader
+    from ..dataset import BuildOptions, as_source, build_dataset
 
     # ``frames`` were checked against the capture by the caller (`parse_frames`, or the demo's own range)
-    frames_ = frames if frames is not None else CaptureReader(capture_dir).frames
+    frames_ = frames if frames is not None else as_source(capture_dir).frames
     total = len(frames_)
     options = BuildOptions(backward_flow=backward_flow, bev=bev, motion_threshold_m=motion_threshold_m,
                            png_level=png_level, write_threads=write_threads, batch_frames=batch_frames)
@@ -171,7 +171,7 @@ def build(
     write_threads: int = typer.Option(2, "--write-threads", help="Threads writing files (0 = write inline)."),
     motion_threshold_m: float = typer.Option(0.5, "--motion-threshold", help="Motion-mask threshold (metres)."),
     png_level: int = typer.Option(1, "--png-level", min=0, max=9,
-                                  help="zlib level of every PNG: 1 fastest, 6-9 ~30 % smaller PNGs, 2-4x slower."),
+                                  help="zlib level of every PNG: 1 fastest; higher levels write smaller PNGs more slowly."),
     batch_frames: int = typer.Option(1, "--batch-frames", min=1,
                                      help="Consecutive samples per batched ground-truth call (one vmapped program on a GPU)."),
     rebuild: bool = typer.Option(False, "--rebuild",

@@ -71,7 +71,7 @@ def _pose_dict(pose) -> dict[str, list[float]]:
 def _initial_camera(model: str, width: int, height: int, focal: float | None):
     import numpy as np
 
-    from ..refit import camera_from_intrinsics, canonical_model_name
+    from ..refit import PARAMETER_NAMES, camera_from_intrinsics, canonical_model_name
 
     model = canonical_model_name(model)
     f = focal if focal is not None else width / math.pi  # equidistant lens spanning 180 degrees
@@ -83,6 +83,13 @@ def _initial_camera(model: str, width: int, height: int, focal: float | None):
         "extended_unified": [f, f, cx, cy, 0.5, 1.0],
         "double_sphere": [f, f, cx, cy, 0.0, 0.5],
         "pinhole": [f, f, cx, cy],
+        "mei": [2 * f, 2 * f, cx, cy, 1.0, 0.0, 0.0, 0.0, 0.0],
+        "opencv": [f, f, cx, cy] + [0.0] * 12,
+        "fov": [f, f, cx, cy, 1.0],
+        "fisheye624": [f, f, cx, cy] + [0.0] * 12,
+        "ocamcalib": [cy, cx, 1.0, 0.0, 0.0, -f] + [0.0] * (len(PARAMETER_NAMES["ocamcalib"]) - 6),
+        "ftheta": [cx, cy, 1.0 / f] + [0.0] * 9 + [math.pi, 1.0, 0.0, 0.0],
+        "carla_wide_angle": [2 * math.degrees(height / (2 * f)), 0.0, 0.0, 0.0, 0.0],
     }[model]
     return camera_from_intrinsics(model, np.asarray(vec), width=width, height=height, dtype=np.float64)
 
@@ -286,21 +293,37 @@ def refit(
         raise typer.Exit(1)
 
 
+DEFAULT_MAX_ERROR_PX = 2.0
+"""`jaxfish convert` writes nothing when the maximum error over the fitted domain exceeds this
+(pixels), unless ``--force``."""
+
+
 @app.command()
 def convert(
     calibration: Path = typer.Argument(..., help="Calibration JSON of any lens model."),
     to: str = typer.Option(..., "--to", "-t", help="Target model: radial_poly (woodscape), kannala_brandt (kb), "
-                           "unified (ucm), extended_unified (eucm), double_sphere (ds)."),
+                           "unified (ucm), extended_unified (eucm), double_sphere (ds), mei, opencv, fov, "
+                           "fisheye624, ocamcalib, ftheta, carla_wide_angle (jaxfish.refit.MODEL_CLASSES)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output calibration JSON."),
-    fov: str = typer.Option("lens", help="Sample rays up to the source's theta_max ('lens') or the image's ('image')."),
-    theta_max_deg: float | None = typer.Option(None, help="Sample rays up to this incidence angle instead (degrees)."),
+    fov: str = typer.Option("image", help="Fit over the image's valid pixels ('image', default) or the source's "
+                            "whole lens ('lens')."),
+    theta_max_deg: float | None = typer.Option(None, help="Fit over rays up to this incidence angle instead (degrees)."),
+    max_error: float = typer.Option(DEFAULT_MAX_ERROR_PX, "--max-error", help="Largest acceptable error over the "
+                                    "fitted domain (pixels): beyond it nothing is written (exit status 2)."),
+    force: bool = typer.Option(False, "--force", help="Write the files even when the error exceeds --max-error "
+                               "or rays of the domain lie outside the target's."),
     report: Path | None = typer.Option(None, "--report", "-r", help="Error report JSON."),
 ) -> None:
-    """Convert a calibration to another lens model, reporting the max and RMS reprojection difference."""
+    """Convert a calibration to another lens model, reporting the fitted domain and the max and RMS
+    reprojection difference over it; nothing is written when the error exceeds --max-error."""
     check_outputs(out=out, report=report)
     target = _model_option(to)
+    if fov not in ("image", "lens"):
+        raise fail(f"--fov must be 'image' or 'lens', got {fov!r}")
     if theta_max_deg is not None and not (math.isfinite(theta_max_deg) and theta_max_deg > 0):
         raise fail(f"--theta-max-deg must be a positive finite number of degrees, got {theta_max_deg}")
+    if not (math.isfinite(max_error) and max_error > 0):
+        raise fail(f"--max-error must be a positive finite number of pixels, got {max_error}")
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -316,18 +339,44 @@ def convert(
                                 theta_max=None if theta_max_deg is None else math.radians(theta_max_deg))
     except ValueError as e:
         raise fail(f"{calibration}: {e}") from None
+    cam = calib.camera
+    if theta_max_deg is not None:
+        domain_kind = f"rays up to {theta_max_deg:g} deg"
+    elif fov == "image":
+        domain_kind = f"the {cam.width}x{cam.height} image's valid pixels"
+    else:
+        domain_kind = "the source's whole lens"
+    theta_deg = math.degrees(float(result.theta_max))
+    radius = float(result.max_radius_px)
+    domain = f"{domain_kind} (up to {theta_deg:.1f} deg off-axis, {radius:.0f} px from the principal point)"
     summary = {
-        "source_model": canonical_model_name(calib.camera), "target_model": target,
+        "source_model": canonical_model_name(cam), "target_model": target,
+        "domain": {"kind": "theta_max" if theta_max_deg is not None else fov, "theta_max_deg": theta_deg,
+                   "max_radius_px": radius, "image_width": cam.width, "image_height": cam.height,
+                   "description": domain},
         "max_px": float(result.max_px), "rms_px": float(result.rms_px),
         "max_px_in_image": float(result.max_px_in_image), "rms_px_in_image": float(result.rms_px_in_image),
-        "theta_max_deg": math.degrees(float(result.theta_max)), "num_samples": int(result.num_samples),
+        "max_error_px": max_error, "forced": force,
+        "theta_max_deg": theta_deg, "num_samples": int(result.num_samples),
         "num_target_invalid": int(result.num_target_invalid), "num_steps": int(result.num_steps),
-        "converged": bool(result.converged),
+        "num_starts": int(result.num_starts), "converged": bool(result.converged),
     }
     say(
-        f"{summary['source_model']} -> {target} up to {summary['theta_max_deg']:.1f} deg: max {summary['max_px']:.4g} px, "
+        f"{summary['source_model']} -> {target} over {domain}: max {summary['max_px']:.4g} px, "
         f"rms {summary['rms_px']:.4g} px (inside the image: max {summary['max_px_in_image']:.4g}, "
         f"rms {summary['rms_px_in_image']:.4g}); {summary['num_target_invalid']} of {summary['num_samples']} rays "
         f"outside the target's domain")
+    problems = []
+    if summary["max_px"] > max_error:
+        problems.append(f"maximum error {summary['max_px']:.4g} px exceeds --max-error {max_error:g} px")
+    if summary["num_target_invalid"] > 0:
+        problems.append(f"{summary['num_target_invalid']} of {summary['num_samples']} rays lie outside the "
+                        f"{target} model's domain")
+    if problems and not force:
+        raise fail(f"{calibration}: converting to {target} over {domain}: {'; '.join(problems)}; {out} not written"
+                   f"{'' if report is None else f' (nor {report})'} (--force writes it anyway; --theta-max-deg "
+                   "narrows the domain)")
     _write_outputs(Calibration(calib.name, result.camera, calib.camera_to_vehicle, calib.flavor), out, report, summary)
+    if problems:
+        print_warning(f"{'; '.join(problems)}; written anyway (--force)")
     say(f"wrote {out}")

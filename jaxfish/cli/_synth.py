@@ -1,4 +1,6 @@
-"""``jaxfish synth --out CAPTURE_DIR``: render the embedded street scene as a CARLA-style capture."""
+"""``jaxfish synth --out CAPTURE_DIR``: render the embedded street scene as a CARLA-style capture;
+``jaxfish synth --build DATASET_DIR``: render it in memory straight into the dataset builder (no
+capture files; the same dataset bytes as ``synth --out`` then ``build``)."""
 
 from __future__ import annotations
 
@@ -12,7 +14,10 @@ from ._app import app, console, fail, say, warn_undersampled
 
 @app.command()
 def synth(
-    out: Path = typer.Option(..., "--out", "-o", help="Capture directory to write (created)."),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Capture directory to write (created)."),
+    build: Path | None = typer.Option(None, "--build", help="Dataset directory to build directly from the scene "
+                                      "rendered in memory (no capture written; resumable like jaxfish build)."),
+    workers: int | None = typer.Option(None, "--workers", "-w", help="With --build: a local dask cluster of N workers."),
     frames: int = typer.Option(1, "--frames", "-n", help="Number of frames (each with its t-1 instant)."),
     seed: int = typer.Option(0, "--seed", "-s", help="Scene seed (the same seed gives the same capture)."),
     face_size: int = typer.Option(1152, "--face-size", help="Cube face size in pixels (90-degree faces); a size "
@@ -22,13 +27,18 @@ def synth(
     front_width: int = typer.Option(1632, "--front-width", help="Front perspective camera width (4:3)."),
     dvs_substeps: int = typer.Option(4, "--dvs-substeps", help="Sub-frames between t-1 and t for DVS events."),
 ) -> None:
-    """Render the embedded procedural street scene as a CARLA-style capture (layout: docs/capture_layout.md)."""
+    """Render the embedded procedural street scene as a CARLA-style capture (layout:
+    docs/capture_layout.md), or with --build straight into a SynWoodScape-style dataset."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from .. import default_rig, load_rig
-    from ..io._capture import rig_names, steps_per_frame, synthesize_capture
+    from ..dataset import rig_names, steps_per_frame, synthesize_capture
     from ..scene import CaptureConfig
 
+    if (out is None) == (build is None):
+        raise fail("give exactly one of --out CAPTURE_DIR (write a capture) and --build DATASET_DIR (build in memory)")
+    if workers is not None and (build is None or workers < 1):
+        raise fail("--workers needs --build and must be at least 1")
     if frames < 1:
         raise fail(f"--frames must be at least 1, got {frames}")
     if seed < 0:
@@ -47,6 +57,16 @@ def synth(
     config = CaptureConfig(face_size=face_size, bev_size=bev_size, front_width=front_width,
                            front_height=max(1, round(front_width * 3 / 4)), dvs_substeps=dvs_substeps)
     start = time.perf_counter()
+    if build is not None:
+        from ..dataset import EmbeddedSource
+        from ._build import run_build
+
+        report = run_build(EmbeddedSource(rig, frames=frames, seed=seed, config=config), build,
+                           frames=list(range(frames)), scheduler=None, workers=workers, processes=True,
+                           backward_flow=False, bev=True, write_threads=2)
+        if not report.ok:
+            raise typer.Exit(1)
+        return
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console, transient=False) as bar:
         task = bar.add_task("synth", total=frames * steps_per_frame(rig))

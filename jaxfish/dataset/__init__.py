@@ -1,5 +1,6 @@
-"""The dataset builder (edge, may import `jaxfish.io`): a capture directory in, a SynWoodScape-style
-dataset out, resumable and scalable on dask.distributed (see ``docs/dataset.md``)."""
+"""The dataset builder (edge, may import `jaxfish.io`): frames from a source (a capture directory,
+the embedded scene in memory) through `jaxfish.pipeline.sample_truth` into the SynWoodScape layout
+(`LayoutSink`), resumable and scalable on dask.distributed (see ``docs/dataset.md``)."""
 
 from ._build import DONE_DIR as DONE_DIR
 from ._build import BuildInterrupted as BuildInterrupted
@@ -18,6 +19,7 @@ from ._build import is_complete as is_complete
 from ._build import local_cluster as local_cluster
 from ._build import remove_sample_files as remove_sample_files
 from ._build import remove_stale_temporaries as remove_stale_temporaries
+from ._build import rig_constants_of as rig_constants_of
 from ._contact import CONTACT_COLUMNS as CONTACT_COLUMNS
 from ._contact import CONTACT_ROWS as CONTACT_ROWS
 from ._contact import contact_sheet as contact_sheet
@@ -37,3 +39,12 @@ from ._manifest import write_dataset_files as write_dataset_files
 from ._runtime import core_shares as core_shares
 from ._runtime import share_cores as share_cores
 from ._runtime import tune_allocator as tune_allocator
+from ._sink import LayoutSink as LayoutSink
+from ._sink import synwoodscape_palette_dict as synwoodscape_palette_dict
+from ._sources import CaptureSource as CaptureSource
+from ._sources import EmbeddedSource as EmbeddedSource
+from ._sources import FrameSource as FrameSource
+from ._sources import as_source as as_source
+from ._synthesize import rig_names as rig_names
+from ._synthesize import steps_per_frame as steps_per_frame
+from ._synthesize import synthesize_capture as synthesize_capture

@@ -11,8 +11,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ._build import DONE_DIR, BuildOptions, DatasetError, capture_fingerprint, has_bev
-from ._layout import BEV_CAMERA, DATASET_FILES, FISHEYE_CAMERAS, LAYOUT, LAYOUT_VERSION
+from .._constants import FAR_DEPTH_M
+from ._layout import BEV_CAMERA, DATASET_FILES, LAYOUT, LAYOUT_VERSION
+from ._options import DONE_DIR, BuildOptions, DatasetError
 
 DATASET_FORMAT = "jaxfish-synwoodscape"
 """Format name stored in ``dataset.json``."""
@@ -23,28 +24,31 @@ def _complete_samples(out: Path) -> list[str]:
     return sorted(p.stem for p in d.glob("*.json")) if d.is_dir() else []
 
 
-def dataset_manifest(reader, out_dir: str | os.PathLike, options: BuildOptions | None = None) -> dict[str, Any]:
-    """The content of ``dataset.json`` for a capture (`jaxfish.io.CaptureReader`) built into
-    ``out_dir`` with ``options``: conventions (flow direction, depth definition, event time
-    units, BEV scale and axes, coordinate frames, pixel convention), the class table and palette,
-    the corrected SynWoodScape extrinsics, the layout (`LAYOUT`), the capture's provenance and
-    fingerprint (``source``: `capture_fingerprint`; each sample's marker adds its frame's), the
-    build options, the jaxfish version and the complete samples (those with a marker)."""
+def dataset_manifest(source, out_dir: str | os.PathLike, options: BuildOptions | None = None) -> dict[str, Any]:
+    """The content of ``dataset.json`` for a source of frames (`jaxfish.dataset.CaptureSource`,
+    `EmbeddedSource`, or a capture directory) built into ``out_dir`` with ``options``:
+    conventions (flow direction, depth definition, event time units, BEV scale and axes,
+    coordinate frames, pixel convention), the class table and palette, the corrected SynWoodScape
+    extrinsics, the layout (`LAYOUT`), the capture's provenance (``capture``) and fingerprint
+    (``source``: `FrameSource.fingerprint`; each sample's marker adds its frame's), the build
+    options, the jaxfish version and the complete samples (those with a marker)."""
     import numpy as np
 
     from .. import SYNWOODSCAPE_CORRECTED_TRANSLATIONS_CARLA, __version__
     from ..groundtruth import MOTION_THRESHOLD_M, SYNWOODSCAPE_CLASSES, SYNWOODSCAPE_PALETTE
-    from ..io import DEPTH_COLOR_RANGE_M
+    from ..pipeline import DEPTH_COLOR_RANGE_M
+    from ._sources import as_source
 
     options = options or BuildOptions()
+    source = as_source(source)
     out = Path(out_dir)
-    meta = reader.meta
-    fisheye = [c for c in FISHEYE_CAMERAS if c in reader.cameras] + [c for c in reader.cameras if c not in FISHEYE_CAMERAS]
-    rig = reader.rig()
+    meta = source.describe()
+    fisheye = list(source.cameras)
+    rig = source.rig()
     sizes = {c: [int(rig[c].camera.width), int(rig[c].camera.height)] for c in fisheye}
     bev = None
-    if options.bev and has_bev(reader):
-        bev = _bev_block(reader)
+    if options.bev and source.has_bev():
+        bev = _bev_block(source)
         sizes[BEV_CAMERA] = [bev["width"], bev["height"]]
     cameras = fisheye + ([BEV_CAMERA] if bev else [])
     return {
@@ -53,7 +57,7 @@ def dataset_manifest(reader, out_dir: str | os.PathLike, options: BuildOptions |
         "generator": {"name": "jaxfish", "version": __version__},
         "capture": {k: meta.get(k) for k in ("format", "version", "source", "seed", "dt_s", "carla_semantic_tags",
                                               "face_size", "faces", "cameras")},
-        "source": capture_fingerprint(reader),
+        "source": source.fingerprint(),
         "options": options.to_dict(),
         "cameras": cameras,
         "fisheye_cameras": fisheye,
@@ -77,7 +81,7 @@ def dataset_manifest(reader, out_dir: str | os.PathLike, options: BuildOptions |
             "depth": {"raw_data": "Euclidean range along each pixel's ray, metres, float32 (not planar z-depth)",
                       "exr": "depth_maps/exr: the raw_data range as a one-channel (Z) float32 OpenEXR",
                       "z_depth": "planar depth along the camera's optical axis = range x ray_z, metres, float32",
-                      "sky_m": 1000.0, "no_ray": 0.0, "colormap_range_m": list(DEPTH_COLOR_RANGE_M)},
+                      "sky_m": FAR_DEPTH_M, "no_ray": 0.0, "colormap_range_m": list(DEPTH_COLOR_RANGE_M)},
             "optical_flow": {"direction": "forward: from t-1 to t", "grid": "defined on the t-1 pixel grid",
                              "definition": "flow = uv_t - uv_(t-1) in pixels, u right, v down",
                              "valid": "the point stays in the image and is not occluded at t; invalid pixels "
@@ -120,26 +124,29 @@ def dataset_manifest(reader, out_dir: str | os.PathLike, options: BuildOptions |
     }
 
 
-def _bev_block(reader) -> dict[str, Any]:
-    from ..io import bev_metadata, bev_sensor
+def _bev_block(source) -> dict[str, Any]:
+    from ..bev import bev_metadata
 
-    cam, c2v = bev_sensor(reader)
+    cam, c2v = source.bev_sensor()
     return bev_metadata(cam, c2v, origin="the ego body centre on the ground (sensors.json bev.camera_to_vehicle)")
 
 
-def write_dataset_files(reader, out_dir: str | os.PathLike, options: BuildOptions | None = None) -> list[Path]:
+def write_dataset_files(source, out_dir: str | os.PathLike, options: BuildOptions | None = None) -> list[Path]:
     """Write the dataset-level files: ``dataset.json`` (`dataset_manifest`),
-    ``calibration_data/{camera}.json`` (the capture's calibration files, byte for byte),
+    ``calibration_data/{camera}.json`` (the source's calibration files, byte for byte),
     ``calibration_data/BEV.json`` (BEV scale and axes; removed when the build has no BEV) and
     ``semantic_annotations/seg_annotation_info.json`` (classes and palette). Atomic, deterministic."""
-    from ..io import atomic_write_bytes, atomic_write_text, synwoodscape_palette_dict
+    from ..io import atomic_write_bytes, atomic_write_text
     from ..io._json import to_json_text
+    from ._sink import synwoodscape_palette_dict
+    from ._sources import as_source
 
     options = options or BuildOptions()
+    source = as_source(source)
     out = Path(out_dir)
     paths = []
-    reader.rig()  # every calibration valid before one is copied (never a broken file over a good one)
-    manifest = dataset_manifest(reader, out, options)
+    source.rig()  # every calibration valid before one is copied (never a broken file over a good one)
+    manifest = dataset_manifest(source, out, options)
     # Every JSON text first (strict: a non-finite number names the file and field), then the files.
     docs: dict[str, Any] = {}
     if manifest["conventions"]["bev"] is not None:
@@ -147,9 +154,8 @@ def write_dataset_files(reader, out_dir: str | os.PathLike, options: BuildOption
     docs["semantic_annotations/seg_annotation_info.json"] = synwoodscape_palette_dict()
     docs["dataset.json"] = manifest
     texts = {rel: to_json_text(out / rel, doc, indent=1, error=DatasetError) for rel, doc in docs.items()}
-    for cam in reader.cameras:
-        src = reader.root / "calibration" / f"{cam}.json"
-        paths.append(atomic_write_bytes(out / "calibration_data" / f"{cam}.json", src.read_bytes()))
+    for cam in source.cameras:
+        paths.append(atomic_write_bytes(out / "calibration_data" / f"{cam}.json", source.calibration_bytes(cam)))
     if manifest["conventions"]["bev"] is None:  # a build without the BEV (rebuilt with bev=False) describes no BEV camera
         (out / "calibration_data" / f"{BEV_CAMERA}.json").unlink(missing_ok=True)
     for rel, text in texts.items():

@@ -25,14 +25,13 @@ def tune_allocator() -> bool:
     """Make glibc's ``malloc`` keep the memory of freed large arrays in the process heap: blocks up
     to 32 MB come from the heap instead of fresh ``mmap`` regions, and the heap is not trimmed.
 
-    Why: a sample's ground truth allocates and frees hundreds of image-sized buffers (5-15 MB);
-    served by fresh mappings, every one of them page-faults and is zeroed by the kernel again. With
-    the memory kept, the ground truth of four 1280 x 966 cameras took 0.74-0.85 s instead of
-    0.83-1.01 s (median of 12, two interleaved pairs of processes, 2-core CPU). The cost: freed
-    memory is not returned to the system until the process ends: a whole dataset build peaked at
-    4.2 GB instead of 3.3 GB, for no measurable gain (its time is mostly PNG and file I/O), so
-    `build_dataset` applies it only with ``BuildOptions(tune_allocator=True)``. Worth it for
+    Why: a sample's ground truth allocates and frees hundreds of image-sized buffers; served by
+    fresh mappings, every one of them page-faults and is zeroed by the kernel again, and kept in
+    the heap they are reused. The cost: freed memory is not returned to the system until the
+    process ends, so a dataset build peaks higher, while most of its time is PNG and file I/O;
+    `build_dataset` therefore applies it only with ``BuildOptions(tune_allocator=True)``. It suits
     scripts that compute ground truth in a loop (``scripts/bench_groundtruth.py`` applies it).
+    Measured effect: ``docs/performance.md``.
 
     Idempotent and process-wide. Returns True when applied, False where the C library is not glibc
     (nothing changes)."""
@@ -76,9 +75,8 @@ def share_cores(client) -> dict[str, tuple[int, ...]]:
     Linux, or one worker sharing all cores).
 
     Why: each worker runs its own decode threads, write threads and XLA thread pool, all sized for
-    the whole machine; two unpinned workers on 2 cores contend for both and built 0.30 samples/s,
-    one core each built 0.35 (``scripts/bench_build.py``). Don't call it for thread workers: they
-    share one process."""
+    the whole machine, so unpinned workers contend for every core (measured in
+    ``docs/performance.md``). Don't call it for thread workers: they share one process."""
     if not hasattr(os, "sched_setaffinity"):  # pragma: no cover - not Linux
         return {}
     info = client.scheduler_info()["workers"]

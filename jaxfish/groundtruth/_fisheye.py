@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._constants import FAR_DEPTH_M
 from .._numerics import materialize
 from ..cameras import AbstractCamera
 from ..reprojection import Lut, resample_bilinear, resample_depth, resample_nearest
@@ -17,16 +18,16 @@ from ..transforms import Pose
 from ._boxes2d import Boxes2D, boxes_from_instances, boxes_from_surfaces
 from ._boxes3d import Boxes3D
 from ._classes import carla_to_synwoodscape
-from ._flow import FAR_RANGE_M, FlowField, analytic_flow, apply_pose, pixel_points, pixel_rays, rigid_motion
+from ._flow import FlowField, analytic_flow, apply_pose, pixel_points, pixel_rays, rigid_motion
 from ._instances import (
     BOX_MARGIN_M,
     FALLBACK_DISTANCE_M,
     MOTION_THRESHOLD_M,
     TILE_SIZE,
     InstanceMap,
-    _assign,
-    _plan,
+    assign_instances,
     box_displacements,
+    instance_plan,
     motion_segmentation,
     tile_capacity,
 )
@@ -51,7 +52,7 @@ def fisheye_images(
     tags) to the fisheye through ``lut`` with `resample_bilinear`, `resample_depth` and
     `resample_nearest` (``reduce="centre"`` for labels so they match the depth's centre sample)."""
     rgb, valid = resample_bilinear(jnp.asarray(faces_rgb), lut)
-    rng, _ = resample_depth(jnp.asarray(faces_depth_m, jnp.float32), lut, far_m=FAR_RANGE_M)
+    rng, _ = resample_depth(jnp.asarray(faces_depth_m, jnp.float32), lut, far_m=FAR_DEPTH_M)
     tag, _ = resample_nearest(jnp.asarray(faces_tag), lut, reduce="centre")
     return FisheyeImages(rgb=rgb, range_m=rng, tag=tag.astype(jnp.int32), valid=valid)
 
@@ -69,7 +70,7 @@ def range_to_z_depth(
     else:
         rays, ok = jnp.asarray(rays[0]), jnp.asarray(rays[1], bool)
     z = r * rays[..., 2].astype(r.dtype)
-    z = jnp.where(r >= FAR_RANGE_M, jnp.asarray(FAR_RANGE_M, r.dtype), z)
+    z = jnp.where(r >= FAR_DEPTH_M, jnp.asarray(FAR_DEPTH_M, r.dtype), z)
     return jnp.where(ok, z, 0.0)
 
 
@@ -102,8 +103,8 @@ class CameraGroundTruth(eqx.Module):
 
 @jax.jit
 def camera_to_world(vehicle_to_world: Pose, camera_to_vehicle: Pose) -> Pose:
-    """OpenCV camera -> CARLA world: ``vehicle_to_world @ camera_to_vehicle`` (float32; compiled:
-    composed op by op it cost 40 ms of dispatch per call)."""
+    """OpenCV camera -> CARLA world: ``vehicle_to_world @ camera_to_vehicle`` (float32; one compiled
+    program, so that a call dispatches once instead of once per operation)."""
     v = Pose(vehicle_to_world.rotation_matrix, vehicle_to_world.translation, dtype=jnp.float32)
     c = Pose(camera_to_vehicle.rotation_matrix, camera_to_vehicle.translation, dtype=jnp.float32)
     return v @ c
@@ -112,7 +113,7 @@ def camera_to_world(vehicle_to_world: Pose, camera_to_vehicle: Pose) -> Pose:
 def _labels(images: FisheyeImages, points, boxes: Boxes3D, carla_version, margin_m, fallback_m, k, capacity, cand,
             capacity_many):
     world, base = points  # world points and base classes, from the planning step
-    inst = _assign(world, base, boxes, margin_m, fallback_m, TILE_SIZE, k, capacity, cand, capacity_many)
+    inst = assign_instances(world, base, boxes, margin_m, fallback_m, TILE_SIZE, k, capacity, cand, capacity_many)
     sem = carla_to_synwoodscape(images.tag, carla_version=carla_version, box_class=inst.class_id)
     return inst, sem
 
@@ -144,29 +145,54 @@ def fisheye_ground_truth(
     frame -> CARLA world (`vehicle_to_world_from_carla`). Flow uses the instance assignment at
     t-1 (each point moves with its box) and the range map at t for occlusions. ``rays``: the
     camera's `pixel_rays` (a per-calibration constant; computed here when omitted)."""
-    img_p, img = _jit_images_pair(lut, *(jnp.asarray(getattr(f, k)) for f in (faces_prev, faces) for k in ("rgb", "depth_m", "semantic")))
+    img_p, img = fisheye_images_pair(lut, *(jnp.asarray(getattr(f, k)) for f in (faces_prev, faces) for k in ("rgb", "depth_m", "semantic")))
     rays = _jit_rays(camera) if rays is None else (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
-    return _finish(camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world,
-                   carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples)
+    return ground_truth_from_images(
+        camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world,
+        carla_version=carla_version, motion_threshold_m=motion_threshold_m, backward_flow=backward_flow,
+        margin_m=margin_m, fallback_m=fallback_m, max_candidates=max_candidates, surface_samples=surface_samples)
 
 
-def _finish(camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world,
-            carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples):
+def ground_truth_from_images(
+    camera: AbstractCamera,
+    rays: tuple[Float[Array, "H W 3"], Bool[Array, "H W"]],
+    images_prev: FisheyeImages,
+    images: FisheyeImages,
+    camera_to_vehicle: Pose,
+    boxes_prev: Boxes3D,
+    boxes: Boxes3D,
+    vehicle_to_world_prev: Pose,
+    vehicle_to_world: Pose,
+    *,
+    carla_version: str = "0.9.10",
+    motion_threshold_m: float = MOTION_THRESHOLD_M,
+    backward_flow: bool = False,
+    margin_m: float = BOX_MARGIN_M,
+    fallback_m: float = FALLBACK_DISTANCE_M,
+    max_candidates: int | None = None,
+    surface_samples: int = 12,
+) -> CameraGroundTruth:
+    """`fisheye_ground_truth` from the camera's images at t-1 and t (`fisheye_images`, or a
+    directly captured view's): the two compiled stages `ground_truth_plan` and
+    `ground_truth_from_plan` with one host round trip between them for the static sizes
+    (`rest_statics`). ``rays``: the camera's float32 `pixel_rays`; the options are
+    `fisheye_ground_truth`'s. Not traceable (it reads the plan's sizes back)."""
     c2w_p = camera_to_world(vehicle_to_world_prev, camera_to_vehicle)
     c2w = camera_to_world(vehicle_to_world, camera_to_vehicle)
     reach = max(margin_m, fallback_m)
-    k_host, n_host, m_host, cands, points = _jit_counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes,
-                                                         carla_version, reach)
+    k_host, n_host, m_host, cands, points = _jit_plan(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes,
+                                                       carla_version, reach)
     statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates,
                            surface_samples, k_host, n_host, m_host)
-    return _jit_rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, points, *statics)
+    return _jit_from_plan(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes, cands, points, *statics)
 
 
 def rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples,
                  k, busy, many) -> tuple:
-    """The static arguments of the second stage (labels, flow, boxes), from the options and the
-    host values of the planning stage: most candidates per tile ``k`` (rounded up to a power of two
-    unless ``max_candidates`` is given, so that frames and cameras of similar content share one
+    """The static arguments of the second stage (`ground_truth_from_plan`'s ``carla_version`` to
+    ``surface_samples``), from the options and the host values of the planning stage
+    (`ground_truth_plan`): most candidates per tile ``k`` (rounded up to a power of two unless
+    ``max_candidates`` is given, so that frames and cameras of similar content share one
     compilation), and the tile capacities for the ``busy`` and ``many``-candidate tiles."""
     if max_candidates is None:
         max_candidates = 1 << max(int(k) - 1, 0).bit_length()
@@ -201,8 +227,10 @@ def view_ground_truth(
     rays = _jit_rays(camera) if rays is None else (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
     img_p = _jit_view_images(camera, rays, *(jnp.asarray(getattr(view_prev, k)) for k in ("rgb", "depth_m", "semantic")))
     img = _jit_view_images(camera, rays, *(jnp.asarray(getattr(view, k)) for k in ("rgb", "depth_m", "semantic")))
-    return _finish(camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world,
-                   carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples)
+    return ground_truth_from_images(
+        camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world,
+        carla_version=carla_version, motion_threshold_m=motion_threshold_m, backward_flow=backward_flow,
+        margin_m=margin_m, fallback_m=fallback_m, max_candidates=max_candidates, surface_samples=surface_samples)
 
 
 @jax.jit
@@ -212,13 +240,19 @@ def _jit_view_images(camera, rays, rgb, depth_m, tag):
     rz = r[..., 2]
     good = ok & (rz > 0)
     rng = jnp.where(good, z / jnp.where(good, rz, 1.0), 0.0)
-    rng = jnp.where(z >= FAR_RANGE_M, FAR_RANGE_M, rng)
+    rng = jnp.where(z >= FAR_DEPTH_M, FAR_DEPTH_M, rng)
     return FisheyeImages(rgb=rgb, range_m=rng.astype(jnp.float32), tag=tag.astype(jnp.int32), valid=good)
 
 
 @jax.jit
-def _jit_images_pair(lut, rgb_p, depth_p, tag_p, rgb, depth, tag):
-    return fisheye_images(lut, rgb_p, depth_p, tag_p), fisheye_images(lut, rgb, depth, tag)
+def fisheye_images_pair(
+    lut: Lut,
+    rgb_prev: Array, depth_prev_m: Float[Array, "F S S"], tag_prev: Int[Array, "F S S"],
+    rgb: Array, depth_m: Float[Array, "F S S"], tag: Int[Array, "F S S"],
+) -> tuple[FisheyeImages, FisheyeImages]:
+    """`fisheye_images` of one camera's faces at t-1 and at t in one compiled program: the faces'
+    RGB ``(F, S, S, 3)``, CARLA planar depth (metres) and CARLA tags at each instant."""
+    return fisheye_images(lut, rgb_prev, depth_prev_m, tag_prev), fisheye_images(lut, rgb, depth_m, tag)
 
 
 @jax.jit
@@ -231,12 +265,31 @@ def _world_points(camera, rays, images: FisheyeImages, cam_to_world: Pose):
     return apply_pose(cam_to_world, pts), ok & images.valid
 
 
-def _counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_version, reach):
+def ground_truth_plan(
+    camera: AbstractCamera,
+    rays: tuple[Float[Array, "H W 3"], Bool[Array, "H W"]],
+    img_p: FisheyeImages,
+    img: FisheyeImages,
+    c2w_p: Pose,
+    c2w: Pose,
+    boxes_prev: Boxes3D,
+    boxes: Boxes3D,
+    carla_version: str,
+    reach: float,
+) -> tuple[Int[Array, ""], Int[Array, ""], Int[Array, ""], tuple[Bool[Array, "T B"], Bool[Array, "T B"]],
+           tuple[tuple[Float[Array, "H W 3"], Int[Array, "H W"]], tuple[Float[Array, "H W 3"], Int[Array, "H W"]]]]:
+    """The first stage of a camera's ground truth (traceable; ``carla_version`` and ``reach``
+    static): each pixel's CARLA world point and base SynWoodScape class at t-1 and t (images
+    ``img_p`` / ``img``, camera -> world poses ``c2w_p`` / ``c2w``, `camera_to_world`) and
+    `instance_plan` of each instant against its boxes. Returns ``(k, busy, many, candidates,
+    points)``: the larger of the two instants' counts (`instance_plan`), the two ``(T, B)``
+    candidate masks and the two ``(world points, base classes)`` pairs (-1: no pixel), which
+    `ground_truth_from_plan` consumes. ``reach``: max(margin_m, fallback_m) in metres."""
     ks, ns, ms, cs, pts = [], [], [], [], []
     for im, c2w_, bx in ((img_p, c2w_p, boxes_prev), (img, c2w, boxes)):
         world, ok = _world_points(camera, rays, im, c2w_)
         base = jnp.where(ok, carla_to_synwoodscape(im.tag, carla_version=carla_version), -1)
-        k, n, m, c = _plan(world, base, bx, TILE_SIZE, reach)
+        k, n, m, c = instance_plan(world, base, bx, TILE_SIZE, reach)
         ks.append(k)
         ns.append(n)
         ms.append(m)
@@ -245,11 +298,34 @@ def _counts(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, carla_versi
     return jnp.max(jnp.stack(ks)), jnp.max(jnp.stack(ns)), jnp.max(jnp.stack(ms)), tuple(cs), tuple(pts)
 
 
-_jit_counts = jax.jit(_counts, static_argnums=(8, 9))
+_jit_plan = jax.jit(ground_truth_plan, static_argnums=(8, 9))
 
 
-def _rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, points, carla_version, motion_threshold_m,
-              backward_flow, margin_m, fallback_m, k, capacity, capacity_many, surface_samples):
+def ground_truth_from_plan(
+    camera: AbstractCamera,
+    rays: tuple[Float[Array, "H W 3"], Bool[Array, "H W"]],
+    img_p: FisheyeImages,
+    img: FisheyeImages,
+    c2w_p: Pose,
+    c2w: Pose,
+    boxes_prev: Boxes3D,
+    boxes: Boxes3D,
+    cands: tuple[Bool[Array, "T B"], Bool[Array, "T B"]],
+    points: tuple[tuple[Float[Array, "H W 3"], Int[Array, "H W"]], tuple[Float[Array, "H W 3"], Int[Array, "H W"]]],
+    carla_version: str,
+    motion_threshold_m: float,
+    backward_flow: bool,
+    margin_m: float,
+    fallback_m: float,
+    k: int,
+    capacity: int,
+    capacity_many: int,
+    surface_samples: int,
+) -> CameraGroundTruth:
+    """The second stage of a camera's ground truth (traceable; the arguments from
+    ``carla_version`` on are static, `rest_statics`): semantic and instance labels at t-1 and t
+    (`assign_instances` on `ground_truth_plan`'s ``cands`` and ``points``), motion, forward (and
+    with ``backward_flow`` backward) flow, and the 2D boxes, as one `CameraGroundTruth`."""
     inst_p, sem_p = _labels(img_p, points[0], boxes_prev, carla_version, margin_m, fallback_m, k, capacity, cands[0],
                             capacity_many)
     inst, sem = _labels(img, points[1], boxes, carla_version, margin_m, fallback_m, k, capacity, cands[1], capacity_many)
@@ -274,4 +350,4 @@ def _rest(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, cands, points
     )
 
 
-_jit_rest = jax.jit(_rest, static_argnums=tuple(range(10, 19)))
+_jit_from_plan = jax.jit(ground_truth_from_plan, static_argnums=tuple(range(10, 19)))

@@ -14,14 +14,16 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._constants import FAR_DEPTH_M
 from .._numerics import materialize, stack_last
 from ..cameras import AbstractCamera
 from ..transforms import CARLA_TO_ISO, Pose
 
 OCCLUSION_REL_TOL = 0.03
 """Default relative tolerance of the occlusion test (predicted range vs the target range map)."""
-FAR_RANGE_M = 1000.0
-"""Far / sky range (metres): CARLA's depth saturation, SynWoodScape's sky value."""
+FAR_RANGE_M = FAR_DEPTH_M
+"""Far / sky range (metres): `jaxfish.reprojection.FAR_DEPTH_M` (CARLA's depth saturation) under the
+name of range maps; SynWoodScape's sky value."""
 
 
 class FlowField(eqx.Module):
@@ -52,8 +54,8 @@ def vehicle_to_world_from_carla(location: Float[ArrayLike, "*batch 3"], rotation
 
 def apply_pose(pose: Pose, points: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
     """``R p + t`` for one (unbatched) pose and any number of points, written as multiply-adds on
-    coordinate planes: on CPU ~50x faster than the einsum of `Pose.apply` for image-sized arrays.
-    Batch poses with `jax.vmap`."""
+    coordinate planes (on CPU XLA fuses these, unlike the einsum of `Pose.apply`, into vectorised
+    loops over image-sized arrays). Batch poses with `jax.vmap`."""
     p = jnp.asarray(points)
     r = pose.rotation_matrix.astype(p.dtype)
     t = pose.translation.astype(p.dtype)
@@ -143,13 +145,13 @@ def analytic_flow(
     if valid is not None:
         ok = ok & jnp.asarray(valid, bool)
     # Coordinate planes from here on: on CPU, XLA fuses the producers of every minor-axis stack into
-    # a loop that does not vectorise (15 % of the flow).
+    # a loop that does not vectorise.
     x, y, z = _pose_planes(camera_to_world_source, pts[..., 0], pts[..., 1], pts[..., 2])
     idx = jnp.asarray(actor_index).astype(jnp.int32)
     n_act = actor_motion.rotation_matrix.shape[0]
     if n_act > 0:
         # One scalar gather per matrix entry from a (A, 12) table, then multiply-adds on (H, W)
-        # planes: ~40x faster on CPU than gathering (H, W, 3, 3) matrices.
+        # planes: on CPU these vectorise, a gather of (H, W, 3, 3) matrices does not.
         table = jnp.concatenate([actor_motion.rotation_matrix.reshape(n_act, 9), actor_motion.translation], axis=-1).astype(dtype)
         k = jnp.clip(idx, 0, n_act - 1)
         m = [jnp.take(table[:, j], k) for j in range(12)]
@@ -157,7 +159,7 @@ def analytic_flow(
         dyn = idx >= 0
         x, y, z = (jnp.where(dyn, a, b) for a, b in zip(moved, (x, y, z), strict=True))
         # Materialise the moved points: XLA on CPU would fuse the gathers into the projection below,
-        # and a loop fusion holding a gather is not vectorised (the projection ran 3x slower).
+        # and a loop fusion holding a gather is not vectorised.
         x, y, z = materialize((x, y, z), r.reshape(-1)[0].astype(dtype))
     px, py, pz = _pose_planes(camera_to_world_target.inverse(), x, y, z)
     p_tgt = stack_last([px, py, pz])
@@ -183,7 +185,7 @@ def analytic_flow(
         x1 = jnp.minimum(x0 + 1, tw - 1)
         y1 = jnp.minimum(y0 + 1, th - 1)
         tol = jnp.asarray(occlusion_rel_tol, dtype)
-        far = jnp.asarray(FAR_RANGE_M, dtype)
+        far = jnp.asarray(FAR_DEPTH_M, dtype)
         near_limit = pred_range * (1 - tol)
         far_point = pred_range >= far * (1 - tol)
         # Seen (not occluded) when one of the 4 nearest target ranges reaches the predicted range.

@@ -60,8 +60,8 @@ def flow_to_color(
     f = f.astype(dtype)
     ok = jnp.ones(f.shape[:-1], bool) if valid is None else jnp.asarray(valid, bool)
     f = jnp.where(ok[..., None], f, 0.0)
-    # Planes, computed once: XLA:CPU reduces (the max) and fuses interleaved (..., 2) data an order of
-    # magnitude slower (the colour coding of a 1280 x 966 field took 47 ms, 30 ms with planes).
+    # Planes, computed once: XLA:CPU reduces (the max) and fuses interleaved (..., 2) data far more
+    # slowly than separate planes.
     u, v = materialize((f[..., 0], f[..., 1]), f.reshape(-1)[0])
     if max_radius is None:
         # max(sqrt(x)) == sqrt(max(x)) exactly (sqrt is monotone and correctly rounded): one sqrt.

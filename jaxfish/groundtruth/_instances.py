@@ -108,17 +108,24 @@ def max_box_candidates(
 _jit_candidates = jax.jit(_candidates, static_argnums=(3, 4))
 
 
-def _plan(points_world, pixel_class, boxes: Boxes3D, tile: int, reach: float):
-    """``(max candidates per tile, number of tiles holding instance pixels, number of those with
-    more than one candidate, the (T, B) candidate mask)``: the static sizes, and the culling result
-    to reuse."""
+def instance_plan(
+    points_world: Float[Array, "H W 3"], pixel_class: Int[Array, "H W"], boxes: Boxes3D, tile: int, reach: float,
+) -> tuple[Int[Array, ""], Int[Array, ""], Int[Array, ""], Bool[Array, "T B"]]:
+    """The culling plan of `instance_segmentation` (traceable; ``tile`` and ``reach`` are static):
+    ``(most candidate boxes of any tile, number of tiles holding instance pixels, number of those
+    with more than one candidate, the (T, B) candidate mask)`` over the ``T`` tiles of side
+    ``tile`` and the ``B`` boxes. The three counts, read back on the host, size the static
+    arguments of `assign_instances` (``k``, and ``capacity`` / ``capacity_many`` through
+    `tile_capacity`); the mask is its ``cand``. ``points_world``: CARLA world points (metres);
+    ``pixel_class``: SynWoodScape classes before the two-wheeler / ego split (-1: no pixel);
+    ``reach``: the larger of the box margin and the fallback distance (metres)."""
     cand = _candidates(points_world, pixel_class, boxes, tile, reach)
     busy = _tile_reduce(_pixel_groups(pixel_class) > 0, tile, False, jnp.any)
     n_cand = jnp.sum(cand, axis=-1)
     return jnp.max(n_cand), jnp.sum(busy), jnp.sum(busy & (n_cand > 1)), cand
 
 
-_jit_plan = jax.jit(_plan, static_argnums=(3, 4))
+_jit_plan = jax.jit(instance_plan, static_argnums=(3, 4))
 
 
 def tile_capacity(n: int) -> int:
@@ -194,8 +201,17 @@ def _untile(x: Array, h: int, w: int, tile: int) -> Array:
     return x[:h, :w]
 
 
-def _assign(pts, cls, boxes: Boxes3D, margin_m: float, fallback_m: float, tile: int, k: int, capacity: int = 0,
-            cand: Array | None = None, capacity_many: int = 0) -> InstanceMap:
+def assign_instances(
+    pts: Float[Array, "H W 3"], cls: Int[Array, "H W"], boxes: Boxes3D, margin_m: float, fallback_m: float, tile: int,
+    k: int, capacity: int = 0, cand: Bool[Array, "T B"] | None = None, capacity_many: int = 0,
+) -> InstanceMap:
+    """`instance_segmentation` with every static size given (traceable; ``margin_m``,
+    ``fallback_m``, ``tile``, ``k``, ``capacity`` and ``capacity_many`` are static): ``pts`` the
+    pixels' CARLA world points (metres), ``cls`` their SynWoodScape classes before the two-wheeler
+    / ego split (-1: no pixel), ``k`` the candidate boxes tested per tile (exact when at least
+    `instance_plan`'s largest count), ``capacity`` / ``capacity_many`` the tiles tested (0: every
+    tile; see `instance_segmentation`) and ``cand`` the ``(T, B)`` candidate mask of
+    `instance_plan` (recomputed when None)."""
     h, w = cls.shape
     dtype = pts.dtype
     grp_img = _pixel_groups(cls)
@@ -296,7 +312,7 @@ def _test_tiles(tp, tg, top, top_ok, boxes_f, margin_m: float, fallback_m: float
     return jnp.where(any_in, in_i, near_i).astype(jnp.int32), any_near
 
 
-_jit_assign = jax.jit(_assign, static_argnums=(3, 4, 5, 6, 7, 9))
+_jit_assign = jax.jit(assign_instances, static_argnums=(3, 4, 5, 6, 7, 9))
 
 
 def instance_colors(actor_id: Int[ArrayLike, "*batch"]) -> UInt8[Array, "*batch 3"]:

@@ -4,12 +4,10 @@ several samples (leading axes ``(N, C)``) in one call.
 The batch is mapped either by `jax.vmap` (``batch="vmap"``: one program per stage for the whole
 batch, one host round trip for the static sizes of the instance segmentation, the largest over
 the batch) or by a loop dispatching each camera's compiled programs asynchronously
-(``batch="loop"``: static sizes per camera). Both give the same values (tested). Which is faster
-depends on the backend: on a 2-core CPU the loop took 0.8-0.9 s for the four 1280 x 966 cameras of
-a sample, the vmapped program 1.9-2.4 s and the four cameras unrolled in one program 1.5 s (XLA:CPU
-lowers batched gathers slowly and schedules one large program worse than four small ones), so
-``batch="auto"`` loops on CPU and vmaps on accelerators, where one wide program keeps the device
-busy.
+(``batch="loop"``: static sizes per camera). Both give the same values (tested).
+``batch="auto"`` loops on the CPU backend (XLA:CPU lowers batched gathers slowly and schedules one
+large program worse than one small program per camera) and vmaps on accelerators, where one wide
+program keeps the device busy. Timings of both modes: ``docs/performance.md``.
 """
 
 from __future__ import annotations
@@ -29,12 +27,12 @@ from ..transforms import Pose
 from ._boxes3d import Boxes3D
 from ._fisheye import (
     CameraGroundTruth,
-    _counts,
-    _finish,
-    _jit_images_pair,
-    _rest,
     camera_to_world,
     fisheye_images,
+    fisheye_images_pair,
+    ground_truth_from_images,
+    ground_truth_from_plan,
+    ground_truth_plan,
     rest_statics,
 )
 from ._flow import pixel_rays
@@ -83,7 +81,7 @@ def _plan_one(cam, smp, item, carla_version: str, reach: float):
     (rgb_p, dep_p, tag_p), (rgb, dep, tag) = item
     img_p, img = fisheye_images(lut, rgb_p, dep_p, tag_p), fisheye_images(lut, rgb, dep, tag)
     c2w_p, c2w = camera_to_world(vp, c2v), camera_to_world(vc, c2v)
-    k, busy, many, cands, points = _counts(camera, ray, img_p, img, c2w_p, c2w, bp, bc, carla_version, reach)
+    k, busy, many, cands, points = ground_truth_plan(camera, ray, img_p, img, c2w_p, c2w, bp, bc, carla_version, reach)
     return (img_p, img, c2w_p, c2w, cands, points), jnp.stack([k, busy, many]).astype(jnp.int32)
 
 
@@ -91,7 +89,7 @@ def _rest_one(cam, smp, item, statics):
     camera, ray = cam
     bp, bc = smp
     img_p, img, c2w_p, c2w, cands, points = item
-    return _rest(camera, ray, img_p, img, c2w_p, c2w, bp, bc, cands, points, *statics)
+    return ground_truth_from_plan(camera, ray, img_p, img, c2w_p, c2w, bp, bc, cands, points, *statics)
 
 
 @functools.partial(jax.jit, static_argnums=(10, 11))
@@ -222,14 +220,16 @@ def rig_ground_truth(
 
     # Loop: camera by camera, exactly `fisheye_ground_truth`'s programs (images, plan, read the static
     # sizes back, queue the rest asynchronously), then the next camera. Interleaving keeps one
-    # camera's intermediates alive at a time: planning every camera first and sharing one round trip
-    # was 0.1 s slower per sample, and fusing the images into the plan program 0.05 s slower.
+    # camera's intermediates alive at a time, which is faster on CPU than planning every camera first
+    # with one shared round trip, or than fusing the images into the plan program.
     def one(cam, smp, item):
         lut, camera, c2v_j, ray = cam
         (rgb_p, dep_p, tag_p), (rgb, dep, tag) = item
-        img_p, img = _jit_images_pair(lut, rgb_p, dep_p, tag_p, rgb, dep, tag)
-        return _finish(camera, ray, img_p, img, c2v_j, *smp, carla_version, motion_threshold_m, backward_flow, margin_m,
-                       fallback_m, max_candidates, surface_samples)
+        img_p, img = fisheye_images_pair(lut, rgb_p, dep_p, tag_p, rgb, dep, tag)
+        return ground_truth_from_images(
+            camera, ray, img_p, img, c2v_j, *smp, carla_version=carla_version, motion_threshold_m=motion_threshold_m,
+            backward_flow=backward_flow, margin_m=margin_m, fallback_m=fallback_m, max_candidates=max_candidates,
+            surface_samples=surface_samples)
 
     # Each camera's faces in one indexing step (a view of NumPy faces, one slice of device faces).
     per_camera = [(luts[j], cameras[j], _at(c2v, j), rays[j]) for j in range(c)]

@@ -21,8 +21,10 @@ from ..refit._parameters import intrinsic_range_problem
 from ..transforms import CARLA_TO_ISO, Pose
 from ._json import read_json, regular_file, write_json
 
-_WOODSCAPE_T = "translation"
-_SYNWOODSCAPE_T = "translation used in CARLA (CARLA reference)"
+WOODSCAPE_TRANSLATION_KEY = "translation"
+"""The ``extrinsic`` key of a WoodScape calibration's translation (ISO 8855 vehicle frame, metres)."""
+SYNWOODSCAPE_TRANSLATION_KEY = "translation used in CARLA (CARLA reference)"
+"""The ``extrinsic`` key of a SynWoodScape calibration's translation (CARLA frame, metres)."""
 _INTRINSIC_NUMBERS = ("aspect_ratio", "cx_offset", "cy_offset", "height", "k1", "k2", "k3", "k4", "width")
 _INTRINSIC_KEYS = frozenset(_INTRINSIC_NUMBERS + ("model", "poly_order"))
 _QUATERNION_NORM_TOLERANCE = 1e-3
@@ -83,10 +85,10 @@ def calibration_from_dict(
         raise _fail(source, "name", f"expected a non-empty string, got {name!r}")
 
     ext = _mapping(data["extrinsic"], source, "extrinsic")
-    if _SYNWOODSCAPE_T in ext:
-        flavor, t_key = "synwoodscape", _SYNWOODSCAPE_T
+    if SYNWOODSCAPE_TRANSLATION_KEY in ext:
+        flavor, t_key = "synwoodscape", SYNWOODSCAPE_TRANSLATION_KEY
     else:
-        flavor, t_key = "woodscape", _WOODSCAPE_T
+        flavor, t_key = "woodscape", WOODSCAPE_TRANSLATION_KEY
     _check_keys(ext, {"quaternion", t_key}, {"quaternion", t_key}, source, "extrinsic")
     q = _vector(ext["quaternion"], 4, source, "extrinsic.quaternion")
     qn = float(np.linalg.norm(q))
@@ -148,17 +150,7 @@ def load_calibration(path: str | os.PathLike, *, apply_errata: bool = False, dty
     Raises `FileNotFoundError` for a missing file and `CalibrationError` (a `ValueError`) naming
     the file and field for anything malformed, and naming the path when it is not a regular file
     (a directory, a FIFO, a symbolic link loop).
-
-    Another tool's calibration file (kalibr, COLMAP, OpenCV, basalt, CARLA: ``docs/interop.md``)
-    is read as `jaxfish.io.load_camera_calibration` reads it (its one camera, or ``PATH::NAME``'s,
-    of any lens model).
     """
-    from ._formats import detect_calibration_format
-
-    if "::" in os.fspath(path) and not Path(path).exists() or detect_calibration_format(path) != "jaxfish":
-        from ._correspondences import load_camera_calibration
-
-        return load_camera_calibration(path, dtype=dtype)
     path = regular_file(path, CalibrationError, "calibration file")
     data = read_json(path, CalibrationError)
     return calibration_from_dict(data, source=str(path), apply_errata=apply_errata, dtype=dtype)
@@ -181,7 +173,7 @@ def calibration_to_dict(calib: Calibration, *, flavor: str | None = None) -> dic
     return {
         "extrinsic": {
             "quaternion": [float(x) for x in q],
-            (_SYNWOODSCAPE_T if flavor == "synwoodscape" else _WOODSCAPE_T): [float(x) for x in t],
+            (SYNWOODSCAPE_TRANSLATION_KEY if flavor == "synwoodscape" else WOODSCAPE_TRANSLATION_KEY): [float(x) for x in t],
         },
         "intrinsic": {
             "aspect_ratio": float(cam.aspect_ratio),

@@ -13,7 +13,7 @@ import json
 import math
 import os
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -33,14 +33,6 @@ from ..scene import (
     StreetFrame,
     bev_camera,
     front_camera,
-    generate_street,
-    sensor_mounts,
-    simulate_camera,
-    simulate_gnss,
-    simulate_imu,
-    simulate_lidar,
-    simulate_radar,
-    simulate_view,
 )
 from ._atomic import atomic_path
 from ._calibration_json import load_rig, save_rig
@@ -55,7 +47,7 @@ from ._carla import (
     encode_semantic,
     rgb_to_bgra,
 )
-from ._folder import folder_lock, is_temporary, remove_temporaries
+from ._folder import is_temporary
 from ._images import read_image, write_image
 from ._json import read_json, regular_file, write_json
 
@@ -79,7 +71,8 @@ def _json(path: Path, obj: Any) -> None:
     write_json(path, obj, indent=2, error=CaptureError)
 
 
-def _npy(path: Path, arr: np.ndarray) -> None:
+def write_npy(path: Path, arr: np.ndarray) -> None:
+    """Write ``arr`` as ``.npy`` (C order, no pickle), atomically."""
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.save(fh, np.ascontiguousarray(arr), allow_pickle=False)
 
@@ -102,6 +95,21 @@ def actor_to_dict(actor: Actor) -> dict[str, Any]:
         "velocity": list(actor.velocity),
         "angular_velocity": list(actor.angular_velocity),
         "displacement_m": actor.displacement_m,
+    }
+
+
+def ego_record(frame: StreetFrame) -> dict[str, Any]:
+    """The ``ego.json`` record of a frame: frame number, timestamps at t and t-1 (seconds), ego id,
+    CARLA transforms at t-1 and t, velocity (m/s), acceleration (m/s^2), angular velocity (deg/s)
+    and bounding box."""
+    ego = frame.ego
+    return {
+        "frame": frame.frame, "timestamp_s": frame.timestamp_s, "timestamp_prev_s": frame.timestamp_s - frame.dt_s,
+        "id": ego.id, "transform_prev": _transform(ego.location_prev, ego.rotation_prev),
+        "transform": _transform(ego.location, ego.rotation),
+        "velocity": list(frame.ego_motion.velocity), "acceleration": list(frame.ego_motion.acceleration),
+        "angular_velocity": list(frame.ego_motion.angular_velocity),
+        "bounding_box": {"location": list(ego.bbox_location), "extent": list(ego.bbox_extent)},
     }
 
 
@@ -261,25 +269,17 @@ def write_frame(
             fd = d / "cameras" / cam / face
             write_images(fd, cap.prev[face], "prev")
             write_images(fd, cap.curr[face], "curr")
-            _npy(fd / "dvs.npy", np.asarray(cap.dvs[face]).astype(DVS_EVENT_DTYPE))
+            write_npy(fd / "dvs.npy", np.asarray(cap.dvs[face]).astype(DVS_EVENT_DTYPE))
     for name, (prev, curr, height) in views.items():
         write_images(d / name, prev, "prev")
         write_images(d / name, curr, "curr")
         write_image(d / name / "height_curr.exr", np.asarray(height, np.float32))
-    _npy(d / "lidar.npy", np.asarray(lidar, np.float32))
-    _npy(d / "semantic_lidar.npy", np.asarray(semantic_lidar).astype(SEMANTIC_LIDAR_DTYPE))
-    _npy(d / "radar.npy", np.asarray(radar).astype(RADAR_DTYPE))
+    write_npy(d / "lidar.npy", np.asarray(lidar, np.float32))
+    write_npy(d / "semantic_lidar.npy", np.asarray(semantic_lidar).astype(SEMANTIC_LIDAR_DTYPE))
+    write_npy(d / "radar.npy", np.asarray(radar).astype(RADAR_DTYPE))
     _json(d / "imu.json", dict(imu))
     _json(d / "gnss.json", dict(gnss))
-    ego = frame.ego
-    _json(d / "ego.json", {
-        "frame": frame.frame, "timestamp_s": frame.timestamp_s, "timestamp_prev_s": frame.timestamp_s - frame.dt_s,
-        "id": ego.id, "transform_prev": _transform(ego.location_prev, ego.rotation_prev),
-        "transform": _transform(ego.location, ego.rotation),
-        "velocity": list(frame.ego_motion.velocity), "acceleration": list(frame.ego_motion.acceleration),
-        "angular_velocity": list(frame.ego_motion.angular_velocity),
-        "bounding_box": {"location": list(ego.bbox_location), "extent": list(ego.bbox_extent)},
-    })
+    _json(d / "ego.json", ego_record(frame))
     _json(d / "actors.json", {"frame": frame.frame, "timestamp_s": frame.timestamp_s,
                               "actors": [actor_to_dict(a) for a in frame.actors]})
     header_path = root / "capture.json"
@@ -287,37 +287,6 @@ def write_frame(
     header["frames"] = sorted(set(header["frames"]) | {frame.frame})
     _json(header_path, header)
     return d
-
-
-def synthesize_capture(
-    root: str | os.PathLike,
-    rig: Mapping[str, Calibration],
-    *,
-    frames: int = 1,
-    seed: int = 0,
-    config: CaptureConfig | None = None,
-    progress: Callable[[str], None] | None = None,
-) -> Path:
-    """Render ``frames`` frames of the embedded street scene with ``rig`` and write the capture.
-
-    ``root`` must be new, empty or a jaxfish capture (`check_capture_folder`); it is locked while
-    the capture is written (a second writer meanwhile raises `CaptureError`) and the temporary
-    files a killed run left in it are removed first (only jaxfish's own). An existing capture's
-    files are overwritten with the new ones; files jaxfish does not write there are kept.
-    ``progress`` is called with a short description after every step (a camera, a view, ...).
-    """
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
-        raise CaptureError(f"synthesize_capture: seed must be an integer from 0 to 2**63 - 1, got {seed!r}")
-    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or int(frames) < 1:
-        raise CaptureError(f"synthesize_capture: frames must be a positive integer, got {frames!r}")
-    config = config or CaptureConfig()
-    mounts = sensor_mounts(rig, config)
-    root = check_capture_folder(root)
-    root.mkdir(parents=True, exist_ok=True)
-    with folder_lock(root, CaptureError, "capture writer"):
-        remove_temporaries(root)
-        _synthesize_locked(root, rig, int(frames), int(seed), config, mounts, progress)
-    return root
 
 
 def check_capture_folder(root: str | os.PathLike) -> Path:
@@ -343,42 +312,6 @@ def check_capture_folder(root: str | os.PathLike) -> Path:
                            f"{' ...' if len(names) > 3 else ''}; no capture.json of format {CAPTURE_FORMAT!r}): "
                            f"write the capture into a new or empty folder")
     return root
-
-
-def _synthesize_locked(root: Path, rig: Mapping[str, Calibration], frames: int, seed: int, config: CaptureConfig,
-                       mounts: SensorMounts, progress: Callable[[str], None] | None) -> None:
-    write_capture_header(root, rig, config, mounts, seed=seed)
-    bev, front = bev_camera(config), front_camera(config)
-    tick = progress or (lambda _msg: None)
-    for k in range(frames):
-        frame = generate_street(seed, frame=k, rig=rig)
-        cams = {}
-        for name, calib in rig.items():
-            cams[name] = simulate_camera(frame, calib, config)
-            tick(f"frame {k}: camera {name}")
-        views = {"bev": simulate_view(frame, bev, mounts.bev_camera_to_vehicle, config)}
-        tick(f"frame {k}: bev")
-        views["front"] = simulate_view(frame, front, mounts.front_camera_to_vehicle, config)
-        tick(f"frame {k}: front")
-        lidar, sem = simulate_lidar(frame, mounts.lidar_location, config)
-        radar = simulate_radar(frame, mounts.radar_location, config)
-        write_frame(root, frame, cameras=cams, views=views, lidar=lidar, semantic_lidar=sem, radar=radar,
-                    imu=simulate_imu(frame), gnss=simulate_gnss(frame))
-        tick(f"frame {k}: lidar, radar, imu, gnss written")
-
-
-def rig_names(directory: str | os.PathLike) -> tuple[str, ...]:
-    """Camera names of the ``*.json`` calibrations in a directory: the standard ones first, in
-    ``FV, MVL, MVR, RV`` order, then any others alphabetically."""
-    from ..calibration import CAMERA_NAMES
-
-    stems = {p.stem for p in Path(directory).glob("*.json")}
-    return tuple(n for n in CAMERA_NAMES if n in stems) + tuple(sorted(stems - set(CAMERA_NAMES)))
-
-
-def steps_per_frame(rig: Mapping[str, Calibration]) -> int:
-    """How many times `synthesize_capture` calls ``progress`` per frame."""
-    return len(rig) + 3
 
 
 MAX_ACTOR_ID = 65535
@@ -591,7 +524,7 @@ class CaptureReader:
     def faces_stack(self, frame: int, camera: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """All faces of a camera stacked on a leading face axis (the `CubeRig` order of `faces`);
         ``actor_ids=False`` skips the instance PNGs (`CameraImages.actor_id` None)."""
-        # Decoding PNGs releases the GIL: reading the faces in threads is ~1.7x faster on 2 cores.
+        # Decoding PNGs releases the GIL, so the faces are read in a thread pool.
         with concurrent.futures.ThreadPoolExecutor(max(1, min(len(self.faces), os.cpu_count() or 1))) as pool:
             imgs = list(pool.map(lambda f: self.face(frame, camera, f, instant, actor_ids=actor_ids), self.faces))
         return CameraImages(*(None if getattr(imgs[0], k) is None else np.stack([getattr(i, k) for i in imgs])

@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._constants import DVS_EVENT_DTYPE as DVS_EVENT_DTYPE
+from .._constants import FAR_DEPTH_M
 from .._errors import ImageError
 
-DVS_EVENT_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("pol", "?")])
-"""CARLA's DVS event dtype (``np.frombuffer(raw, dtype=DVS_EVENT_DTYPE)``); ``t`` is in nanoseconds."""
-CARLA_MAX_DEPTH_M = 1000.0
-"""Depth that CARLA's 24-bit encoding saturates at (metres): far and sky."""
+CARLA_MAX_DEPTH_M = FAR_DEPTH_M
+"""Depth that CARLA's 24-bit encoding saturates at (metres): far and sky;
+`jaxfish.reprojection.FAR_DEPTH_M`."""
 _DEPTH_SCALE = 256**3 - 1
 
 

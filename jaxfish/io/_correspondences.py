@@ -39,9 +39,14 @@ import numpy as np
 from .._errors import CalibrationError, JaxfishError
 from ..calibration import Calibration
 from ..cameras import WoodScapeFisheye
-from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict
+from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict, intrinsics_vector
 from ..transforms import CARLA_TO_ISO, Pose
-from ._calibration_json import _SYNWOODSCAPE_T, _WOODSCAPE_T, calibration_from_dict, calibration_to_dict
+from ._calibration_json import (
+    SYNWOODSCAPE_TRANSLATION_KEY,
+    WOODSCAPE_TRANSLATION_KEY,
+    calibration_from_dict,
+    calibration_to_dict,
+)
 from ._json import read_json, write_json
 
 CORRESPONDENCE_FRAMES: tuple[str, ...] = ("board", "vehicle", "camera")
@@ -61,7 +66,9 @@ MAX_CORRESPONDENCE_VALUE = 1e7
 calibration target, and small enough that squared residuals stay finite."""
 
 
-def _array(value: Any, cols: int | None, source: str, field: str) -> np.ndarray:
+def correspondence_array(value: Any, cols: int | None, source: str, field: str) -> np.ndarray:
+    """A finite float64 array of ``cols``-vectors (or numbers), at most `MAX_CORRESPONDENCE_VALUE` in
+    magnitude; `CorrespondenceError` naming the file and field otherwise."""
     try:
         a = np.asarray(value, dtype=np.float64)
     except OverflowError:  # an integer beyond ~1.8e308
@@ -108,11 +115,11 @@ def correspondences_from_dict(data: Any, *, source: str = "<correspondences>", d
         for key in ("points", "pixels"):
             if key not in view:
                 raise CorrespondenceError(f"{source}: field '{where}.{key}': missing")
-        p = _array(view["points"], 3, source, f"{where}.points")
-        q = _array(view["pixels"], 2, source, f"{where}.pixels")
+        p = correspondence_array(view["points"], 3, source, f"{where}.points")
+        q = correspondence_array(view["pixels"], 2, source, f"{where}.pixels")
         if len(p) != len(q):
             raise CorrespondenceError(f"{source}: field '{where}.pixels': {len(q)} pixels for {len(p)} points")
-        w = _array(view["weights"], None, source, f"{where}.weights") if "weights" in view else np.ones(len(p))
+        w = correspondence_array(view["weights"], None, source, f"{where}.weights") if "weights" in view else np.ones(len(p))
         if len(w) != len(p) or np.any(w < 0):
             raise CorrespondenceError(f"{source}: field '{where}.weights': expected {len(p)} non-negative numbers")
         name = view.get("name", f"view{i}")
@@ -188,11 +195,11 @@ def camera_calibration_from_dict(data: Any, *, source: str = "<calibration>", dt
     except ValueError as e:
         raise CalibrationError(str(e)) from None
     ext = data["extrinsic"]
-    flavor, t_key = ("synwoodscape", _SYNWOODSCAPE_T) if isinstance(ext, dict) and _SYNWOODSCAPE_T in ext \
-        else ("woodscape", _WOODSCAPE_T)
+    flavor, t_key = ("synwoodscape", SYNWOODSCAPE_TRANSLATION_KEY) if isinstance(ext, dict) and SYNWOODSCAPE_TRANSLATION_KEY in ext \
+        else ("woodscape", WOODSCAPE_TRANSLATION_KEY)
     if not isinstance(ext, dict) or set(ext) != {"quaternion", t_key}:
         raise CalibrationError(f"{source}: field 'extrinsic': expected {{'quaternion': [x, y, z, w], 'translation': [x, y, z]}}"
-                               f" (or SynWoodScape's {_SYNWOODSCAPE_T!r} instead of 'translation')")
+                               f" (or SynWoodScape's {SYNWOODSCAPE_TRANSLATION_KEY!r} instead of 'translation')")
     q = np.asarray(ext["quaternion"], dtype=np.float64) if _numbers(ext["quaternion"], 4) else None
     t = np.asarray(ext[t_key], dtype=np.float64) if _numbers(ext[t_key], 3) else None
     if q is None:
@@ -204,7 +211,7 @@ def camera_calibration_from_dict(data: Any, *, source: str = "<calibration>", dt
         raise CalibrationError(f"{source}: field 'extrinsic.quaternion': expected a unit quaternion, norm is {qn:.6g}")
     if flavor == "synwoodscape":
         t = CARLA_TO_ISO @ t  # CARLA (y right) -> ISO 8855 (y left), as `calibration_from_dict`
-    pose = Pose.from_quaternion_xyzw(q / qn, t, dtype=camera.fx.dtype)
+    pose = Pose.from_quaternion_xyzw(q / qn, t, dtype=intrinsics_vector(camera).dtype)  # every model (not all have fx)
     return Calibration(name, camera, pose, flavor)
 
 
@@ -213,38 +220,11 @@ def _numbers(value: Any, n: int) -> bool:
             and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in value))
 
 
-def load_camera_calibration(path: str | os.PathLike, *, dtype=None, camera: str | None = None) -> Calibration:
-    """Read a calibration of any lens model: jaxfish's calibration JSON (WoodScape ``radial_poly``
-    files included) or another tool's file (kalibr camchain YAML, COLMAP ``cameras.txt`` or its
-    folder, OpenCV FileStorage YAML, basalt JSON, CARLA sensor JSON: ``docs/interop.md``), told
-    apart by name and content. A file of several cameras needs ``camera`` (a name, or an index
-    such as ``"0"``) unless it holds one; ``PATH::NAME`` (a path that does not exist as written)
-    names it too, so that every command-line calibration argument can pick a camera."""
-    from ._formats import detect_calibration_format, read_calibration_file
-
-    text = os.fspath(path)
-    if camera is None and "::" in text and not Path(text).exists():
-        text, camera = text.rsplit("::", 1)
-    path = Path(text)
-    fmt = detect_calibration_format(path)
-    if fmt == "jaxfish":
-        return camera_calibration_from_dict(_read_json(path, CalibrationError), source=str(path), dtype=dtype)
-    return select_camera(read_calibration_file(path, dtype=dtype, fmt=fmt), path, camera)
-
-
-def select_camera(calibs: list[Calibration], path: Path, camera: str | None) -> Calibration:
-    """One calibration of a file's cameras: by name, by index, or the only one."""
-    names = [c.name for c in calibs]
-    if camera is None:
-        if len(calibs) == 1:
-            return calibs[0]
-        raise CalibrationError(f"{path}: holds {len(calibs)} cameras ({', '.join(names)}); say which one "
-                               f"({path}::NAME)")
-    if camera in names:
-        return calibs[names.index(camera)]
-    if camera.isdigit() and int(camera) < len(calibs):
-        return calibs[int(camera)]
-    raise CalibrationError(f"{path}: no camera {camera!r} (cameras: {', '.join(names)})")
+def load_camera_calibration(path: str | os.PathLike, *, dtype=None) -> Calibration:
+    """Read a jaxfish calibration JSON of any lens model (WoodScape ``radial_poly`` files included).
+    `jaxfish.io.load_camera_calibration` also reads other tools' files."""
+    path = Path(path)
+    return camera_calibration_from_dict(_read_json(path, CalibrationError), source=str(path), dtype=dtype)
 
 
 def camera_calibration_to_dict(calib: Calibration) -> dict[str, Any]:
@@ -258,9 +238,9 @@ def camera_calibration_to_dict(calib: Calibration) -> dict[str, Any]:
     t = np.asarray(calib.camera_to_vehicle.translation, dtype=float)
     if q.ndim != 1 or t.ndim != 1:
         raise ValueError("camera_calibration_to_dict: expected a single (unbatched) calibration")
-    t_key = _WOODSCAPE_T
+    t_key = WOODSCAPE_TRANSLATION_KEY
     if calib.flavor == "synwoodscape":
-        t, t_key = CARLA_TO_ISO @ t, _SYNWOODSCAPE_T
+        t, t_key = CARLA_TO_ISO @ t, SYNWOODSCAPE_TRANSLATION_KEY
     return {
         "extrinsic": {"quaternion": [float(x) for x in q], t_key: [float(x) for x in t]},
         "intrinsic": intrinsics_to_dict(calib.camera),

@@ -11,7 +11,6 @@ import numpy as np
 from .._errors import ImageError
 from ._atomic import atomic_path
 from ._carla import DVS_EVENT_DTYPE
-from ._images import PNG_LEVEL, write_image
 
 TONIC_EVENT_DTYPE = np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
 """tonic's event dtype (``tonic.io.make_structured_array``): int64 ``x, y, t, p``; t in µs."""
@@ -93,18 +92,3 @@ def read_events_tonic(path: str | os.PathLike) -> tuple[np.ndarray, str, tuple[i
             if key not in z:
                 raise ImageError(f"{path}: field '{key}' missing")
         return z["events"], str(z["time_unit"]), tuple(int(v) for v in z["sensor_size"])  # type: ignore[return-value]
-
-
-def write_events_color(path: str | os.PathLike, events: np.ndarray, *, width: int, height: int,
-                       png_level: int = PNG_LEVEL) -> Path:
-    """Write the colour rendering of events (`jaxfish.groundtruth.events_to_color`: blue positive,
-    red negative, white background) as an RGB PNG."""
-    import jax
-
-    from ..groundtruth import events_to_color
-
-    ev = np.asarray(events)
-    pol = ev["pol"] if "pol" in ev.dtype.names else ev["p"] > 0
-    img = jax.jit(events_to_color, static_argnames=("width", "height"))(
-        ev["x"].astype(np.int32), ev["y"].astype(np.int32), pol, width=int(width), height=int(height))
-    return write_image(path, np.asarray(img), png_level=png_level)

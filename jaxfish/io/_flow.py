@@ -81,15 +81,3 @@ def read_kitti_flow(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     valid = a[..., 2] > 0
     flow = (a[..., :2].astype(np.float32) - KITTI_FLOW_OFFSET) / KITTI_FLOW_SCALE
     return np.where(valid[..., None], flow, 0.0).astype(np.float32), valid
-
-
-def write_flow_color(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarray | None = None,
-                     *, max_radius: float | None = None, png_level: int = PNG_LEVEL) -> Path:
-    """Write the standard colour coding of a flow field (`jaxfish.groundtruth.flow_to_color`) as
-    an RGB PNG."""
-    import jax
-
-    from ..groundtruth import flow_to_color
-
-    rgb = jax.jit(flow_to_color, static_argnames="max_radius")(np.asarray(flow, np.float32), valid=valid, max_radius=max_radius)
-    return write_image(path, np.asarray(rgb), png_level=png_level)

@@ -24,9 +24,8 @@ from ._json import regular_file, to_json_text
 _WRITABLE = {".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg"}
 PNG_LEVEL = 1
 """zlib level of the PNGs `write_image` writes by default (1 = fastest). With the Up row filter
-(`PNG_FILTER`), level 1 encodes ~4x faster than OpenImageIO's default (level 6, no filter) and
-decodes ~1.5x faster, for ~40 % more bytes (measured on jaxfish's dataset images; see
-``docs/dataset.md``)."""
+(`PNG_FILTER`), level 1 encodes and decodes faster than OpenImageIO's default (level 6, no
+filter) for larger files; the figures are in ``docs/performance.md``."""
 PNG_FILTER = 0x20
 """PNG row filter of every written PNG: "Up" (libpng ``PNG_FILTER_UP``; each row minus the row above)."""
 _DTYPES = {

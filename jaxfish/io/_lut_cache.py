@@ -19,7 +19,7 @@ import numpy as np
 
 from .._errors import JaxfishError
 from ..cameras import AbstractCamera
-from ..reprojection import Lut, build_lut
+from ..reprojection import Lut, compiled_build_lut
 from ._atomic import atomic_path
 
 LUT_FORMAT_VERSION = 1
@@ -109,7 +109,7 @@ def cached_lut(
             return load_lut(path)
         except JaxfishError:
             pass
-    lut = jax.jit(build_lut, static_argnames=("supersample", "dtype"))(
+    lut = compiled_build_lut(
         source, target, target_to_source=target_to_source, supersample=supersample, dtype=dtype
     )
     save_lut(lut, path)

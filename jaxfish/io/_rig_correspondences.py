@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..refit import Correspondences
-from ._correspondences import CorrespondenceError, _array
+from ._correspondences import CorrespondenceError, correspondence_array
 from ._json import read_json, write_json
 
 RIG_FRAMES: tuple[str, ...] = ("board", "vehicle")
@@ -81,11 +81,11 @@ def rig_correspondences_from_dict(data: Any, *, source: str = "<correspondences>
         if (name, cam) in seen:
             raise CorrespondenceError(f"{source}: field '{where}': camera {cam!r} observes target view {name!r} twice")
         seen.add((name, cam))
-        p = _array(view["points"], 3, source, f"{where}.points")
-        q = _array(view["pixels"], 2, source, f"{where}.pixels")
+        p = correspondence_array(view["points"], 3, source, f"{where}.points")
+        q = correspondence_array(view["pixels"], 2, source, f"{where}.pixels")
         if len(p) != len(q):
             raise CorrespondenceError(f"{source}: field '{where}.pixels': {len(q)} pixels for {len(p)} points")
-        w = _array(view["weights"], None, source, f"{where}.weights") if "weights" in view else np.ones(len(p))
+        w = correspondence_array(view["weights"], None, source, f"{where}.weights") if "weights" in view else np.ones(len(p))
         if len(w) != len(p) or np.any(w < 0):
             raise CorrespondenceError(f"{source}: field '{where}.weights': expected {len(p)} non-negative numbers")
         t = targets.setdefault(name, len(targets))

@@ -19,7 +19,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._numerics import resolve_dtype
 from ..cameras import AbstractCamera
 from ..transforms import Pose
-from ._parameters import intrinsics_vector, parameter_names, with_intrinsics
+from ._parameters import APPROXIMATION_PARAMETERS, intrinsics_vector, parameter_names, with_intrinsics
 
 LOSSES: tuple[str, ...] = ("linear", "huber", "cauchy", "soft_l1")
 """Robust losses: rho(s) of the squared per-point residual norm s (pixels²), scale c (pixels)."""
@@ -41,7 +41,7 @@ def robust_rho(s: Array, loss: str, scale: float | Array) -> Array:
     raise ValueError(f"unknown robust loss {loss!r} (known: {', '.join(LOSSES)})")
 
 
-def _robust_factor(s: Array, code: Array, scale: Array) -> Array:
+def robust_factor(s: Array, code: Array, scale: Array) -> Array:
     """``sqrt(rho(s)/s)`` for the loss ``LOSSES[code]`` (traced: one compile for every loss);
     1 at s = 0, where every loss is quadratic."""
     c2 = scale * scale
@@ -199,9 +199,15 @@ def _summarise(cam, rot, t, corr):
     return res, valid, rms, per_view
 
 
-def _free_mask(names: tuple[str, ...], fixed) -> tuple[bool, ...]:
+def free_parameter_mask(names: tuple[str, ...], fixed: Iterable[str] | Sequence[bool] | str | None) -> tuple[bool, ...]:
+    """Which of a model's parameters (``names``, in `parameter_names` order) a fit may move:
+    ``fixed`` is None (all free), parameter names to hold, or a boolean mask over ``names`` (True:
+    held). Parameters that move no projection (`APPROXIMATION_PARAMETERS`: approximate inverse
+    polynomials) stay held unless a boolean mask frees them. ValueError for an unknown name or a
+    mask of the wrong length."""
+    approximations = {n for group in APPROXIMATION_PARAMETERS.values() for n in group}
     if fixed is None:
-        return tuple(True for _ in names)
+        return tuple(n not in approximations for n in names)
     if isinstance(fixed, str):
         fixed = (fixed,)
     fixed = list(fixed)
@@ -212,7 +218,7 @@ def _free_mask(names: tuple[str, ...], fixed) -> tuple[bool, ...]:
     unknown = [f for f in fixed if f not in names]
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown} in fixed (parameters: {', '.join(names)})")
-    return tuple(n not in fixed for n in names)
+    return tuple(n not in fixed and n not in approximations for n in names)
 
 
 def _unpack(z, p0, scales, rot0, t0, fit_pose):
@@ -230,7 +236,7 @@ def _residuals(cam, rot, t, corr, loss_code, loss_scale):
     res = uv - corr.pixels
     w = corr.weight
     root_w = jnp.where(w > 0, jnp.sqrt(jnp.where(w > 0, w, 1.0)), 0.0)  # d sqrt(w)/dw is infinite at 0: 0, not NaN
-    factor = _robust_factor(jnp.sum(res * res, axis=-1), loss_code, loss_scale) * root_w
+    factor = robust_factor(jnp.sum(res * res, axis=-1), loss_code, loss_scale) * root_w
     return res * factor[:, None]
 
 
@@ -269,9 +275,29 @@ def reprojection_residuals(
 
 
 @eqx.filter_jit
-def _solve(camera, p0, free, rot0, t0, corr, fit_pose, loss_code, loss_scale, max_steps, rtol, atol,
-           with_covariance=True):
-    """One compile per (model, N, n_views, fit_pose): the fixed mask, loss and its scale are traced."""
+def solve_refit(
+    camera: AbstractCamera,
+    p0: Float[Array, " P"],
+    free: Bool[Array, " P"],
+    rot0: Float[Array, "V 3 3"],
+    t0: Float[Array, "V 3"],
+    corr: Correspondences,
+    fit_pose: bool,
+    loss_code: Int[ArrayLike, ""],
+    loss_scale: Float[ArrayLike, ""],
+    max_steps: int,
+    rtol: float,
+    atol: float,
+    with_covariance: bool = True,
+):
+    """The Levenberg-Marquardt solve behind `refit`: ``camera``'s intrinsics from ``p0``
+    (`intrinsics_vector` order; only the ``free`` ones move) and, when ``fit_pose``, the ``V``
+    world-to-camera poses from ``(rot0, t0)``, minimising `reprojection_residuals` of ``corr``
+    with the robust loss ``LOSSES[loss_code]`` at ``loss_scale`` pixels.
+
+    Returns ``(p (P,), rot (V, 3, 3), t (V, 3), extras, num_steps, converged)``; ``extras`` is
+    ``(covariance (P + 6 V, P + 6 V), residual summary)`` with ``with_covariance``, else None.
+    One compile per (model, N, V, fit_pose): the mask, the loss and its scale are traced."""
     dtype = p0.dtype
     n_pose = rot0.shape[0] * 6 if fit_pose else 0
     free_all = jnp.concatenate([free.astype(dtype), jnp.ones(n_pose, dtype)])
@@ -315,7 +341,8 @@ def _solve(camera, p0, free, rot0, t0, corr, fit_pose, loss_code, loss_scale, ma
     return p, rot, t, (cov, _summarise(with_intrinsics(camera, p), rot, t, corr)), steps, ok
 
 
-def _default_tolerances(dtype) -> tuple[float, float]:
+def default_tolerances(dtype) -> tuple[float, float]:
+    """``(rtol, atol)`` of the fit for a floating dtype: 1e-10 in float64, 1e-6 otherwise."""
     return (1e-10, 1e-10) if jnp.dtype(dtype) == jnp.float64 else (1e-6, 1e-6)
 
 
@@ -345,7 +372,7 @@ def refit(
     scale ``loss_scale_px``. Runs in the dtype of the camera parameters (float64 recommended).
     """
     names = parameter_names(camera)
-    free = _free_mask(names, fixed)
+    free = free_parameter_mask(names, fixed)
     p0 = intrinsics_vector(camera)
     dtype = p0.dtype
     camera = with_intrinsics(camera, p0)  # canonical leaves (no weak types): one compile per model
@@ -362,7 +389,7 @@ def refit(
             rays, ok = jit_unproject(camera, corr.pixels)
             view_np, pts_np = np.asarray(corr.view), np.asarray(corr.points)
             rays_np, ok_np = np.asarray(rays), np.asarray(ok) & used
-            est = [_pose_from_rays(pts_np[view_np == i], rays_np[view_np == i], ok_np[view_np == i], dtype)
+            est = [pose_from_rays(pts_np[view_np == i], rays_np[view_np == i], ok_np[view_np == i], dtype)
                    for i in range(v)]
             rot0 = jnp.stack([e.rotation_matrix for e in est]).astype(dtype)
             t0 = jnp.stack([e.translation for e in est]).astype(dtype)
@@ -375,8 +402,8 @@ def refit(
     n_params = sum(free) + (6 * v if fit_pose else 0)
     if 2 * int(used.sum()) < n_params:
         raise ValueError(f"refit: {int(used.sum())} correspondences cannot determine {n_params} free parameters")
-    default_rtol, default_atol = _default_tolerances(dtype)
-    p, rot, t, (cov, summary), steps, ok = _solve(
+    default_rtol, default_atol = default_tolerances(dtype)
+    p, rot, t, (cov, summary), steps, ok = solve_refit(
         camera, p0, jnp.asarray(free), rot0, t0, corr, bool(fit_pose), jnp.asarray(LOSSES.index(loss)),
         jnp.asarray(loss_scale_px, dtype), int(max_steps),
         default_rtol if rtol is None else float(rtol), default_atol if atol is None else float(atol),
@@ -410,7 +437,7 @@ def estimate_pose(camera: AbstractCamera, points: Float[ArrayLike, "N 3"], pixel
     """
     dtype = intrinsics_vector(camera).dtype
     rays, valid = jit_unproject(camera, jnp.asarray(pixels, dtype))
-    return _pose_from_rays(np.asarray(points), np.asarray(rays), np.asarray(valid), dtype)
+    return pose_from_rays(np.asarray(points), np.asarray(rays), np.asarray(valid), dtype)
 
 
 def _cross_matrices(r: np.ndarray) -> np.ndarray:
@@ -419,7 +446,7 @@ def _cross_matrices(r: np.ndarray) -> np.ndarray:
                      np.stack([-r[:, 1], r[:, 0], z], -1)], -2)
 
 
-def _pose_from_rays(pts: np.ndarray, rays: np.ndarray, keep: np.ndarray, dtype) -> Pose:
+def pose_from_rays(pts: np.ndarray, rays: np.ndarray, keep: np.ndarray, dtype) -> Pose:
     pts = np.asarray(pts, dtype=np.float64)[keep]
     rays = np.asarray(rays, dtype=np.float64)[keep]
     if pts.shape[0] < 4:

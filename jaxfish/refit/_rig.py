@@ -27,11 +27,11 @@ from ..transforms import Pose
 from ._fit import (
     LOSSES,
     Correspondences,
-    _default_tolerances,
-    _free_mask,
-    _pose_from_rays,
-    _robust_factor,
+    default_tolerances,
+    free_parameter_mask,
     jit_unproject,
+    pose_from_rays,
+    robust_factor,
     rotation_from_vector,
 )
 from ._parameters import intrinsics_vector, parameter_names, with_intrinsics
@@ -114,7 +114,7 @@ def _camera_residuals(cam, ext_r, ext_t, tgt_r, tgt_t, corr, loss_code, loss_sca
     res = uv - corr.pixels
     w = corr.weight
     root_w = jnp.where(w > 0, jnp.sqrt(jnp.where(w > 0, w, 1.0)), 0.0)
-    factor = _robust_factor(jnp.sum(res * res, axis=-1), loss_code, loss_scale) * root_w
+    factor = robust_factor(jnp.sum(res * res, axis=-1), loss_code, loss_scale) * root_w
     return res * factor[:, None], res, valid & (w > 0)
 
 
@@ -183,7 +183,7 @@ def _initial_target_poses(cameras, mounts_r, mounts_t, corrs, n_targets, dtype):
                              f"(best: {int(counts[c, v])})")
         corr = corrs[c]
         m = np.asarray(corr.view) == v
-        pose = _pose_from_rays(np.asarray(corr.points)[m], rays[c][0][m], rays[c][1][m], dtype)
+        pose = pose_from_rays(np.asarray(corr.points)[m], rays[c][0][m], rays[c][1][m], dtype)
         rc, tc = np.asarray(mounts_r[c], np.float64), np.asarray(mounts_t[c], np.float64)
         rots.append(rc @ np.asarray(pose.rotation_matrix, np.float64))
         ts.append(rc @ np.asarray(pose.translation, np.float64) + tc)
@@ -204,7 +204,7 @@ def _view_poses(cam, corr, n_targets, dtype) -> dict[int, np.ndarray]:
         if m.sum() < 4:
             continue
         try:
-            pose = _pose_from_rays(pts[m], rays[m], np.ones(int(m.sum()), bool), dtype)
+            pose = pose_from_rays(pts[m], rays[m], np.ones(int(m.sum()), bool), dtype)
         except ValueError:
             continue
         t = np.eye(4)
@@ -351,7 +351,7 @@ def refit_rig(
         cams.append(with_intrinsics(c.camera, p0))
         p0s.append(p0)
         pn = parameter_names(c.camera)
-        mask = _free_mask(pn, per_cam[c.name]) if o is not None else tuple(False for _ in pn)
+        mask = free_parameter_mask(pn, per_cam[c.name]) if o is not None else tuple(False for _ in pn)
         free_parts.append(np.asarray(mask, np.float64))
         pnames += [f"{c.name}.{n}" for n in pn]
     ext_free = []
@@ -383,7 +383,7 @@ def refit_rig(
     n_free = int(free.sum())
     if 2 * n_used < n_free:
         raise ValueError(f"refit_rig: {n_used} correspondences cannot determine {n_free} free parameters")
-    d_rtol, d_atol = _default_tolerances(dtype)
+    d_rtol, d_atol = default_tolerances(dtype)
     ps, er, et, tr, tt, cov, summaries, steps, ok = _solve_rig(
         tuple(cams), tuple(p0s), jnp.asarray(free, dtype), mounts_r, mounts_t, tgt_r0, tgt_t0, corrs,
         jnp.asarray(LOSSES.index(loss)), jnp.asarray(loss_scale_px, dtype), int(max_steps),

@@ -208,6 +208,11 @@ def build_lut(
     return _assemble(face, uv, valid, z_to_range, rig=None, width=source.width, height=source.height, n=n)
 
 
+
+compiled_build_lut = jax.jit(build_lut, static_argnames=("supersample", "dtype"))
+"""`build_lut` compiled (once per camera types, image sizes and static arguments): the same
+arguments, the same `Lut`."""
+
 def lut_from_map(
     uv: Float[ArrayLike, "H W N 2"],
     *,

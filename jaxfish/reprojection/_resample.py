@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Shaped
 
+from .._constants import FAR_DEPTH_M
 from ._lut import Lut, border_pixels, centre_sample, ring_positions, split_padded_index
 
 DEPTH_AGREEMENT_REL_TOL = 0.05
@@ -44,8 +45,6 @@ DEPTH_AGREEMENT_REL_TOL = 0.05
 satisfy ``max / min <= 1 + rel_tol``; otherwise the nearest tap is used."""
 _UNROLL_FRAMES = 8
 """Frame batches up to this size are unrolled (one kernel per frame in one program); larger ones loop."""
-FAR_DEPTH_M = 1000.0
-"""CARLA's far / sky depth in metres: a far sample is never interpolated and stays exactly this."""
 
 
 def _split_source(x: Array, lut: Lut, what: str, *, channels: bool | None) -> tuple[tuple[int, ...], bool]:
@@ -75,8 +74,8 @@ def _to_output(values: Array, dtype) -> Array:
 
 
 def _over_frames(fn, frames: Array):
-    """``fn`` applied to each frame of ``(B, ...)``, one frame at a time (on CPU, XLA's batched
-    gather and gathers inside a loop run 2-4x slower than one unbatched gather per frame)."""
+    """``fn`` applied to each frame of ``(B, ...)``, one frame at a time (on CPU, XLA lowers a
+    batched gather, and gathers inside a loop, more slowly than one unbatched gather per frame)."""
     b = frames.shape[0]
     if b <= _UNROLL_FRAMES:
         return jnp.stack([fn(frames[i]) for i in range(b)])

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._constants import FAR_DEPTH_M
 from ..cameras import AbstractCamera
 from ..transforms import Pose
 from ._model import (
@@ -27,9 +28,9 @@ from ._model import (
 )
 from ._tags import CARLA_SEMANTIC_TAGS as TAGS
 
-FAR_M = 1000.0
-"""Far plane (metres): no hit beyond it; sky and far pixels report this range and depth
-(CARLA's depth camera saturates at 1000 m)."""
+FAR_M = FAR_DEPTH_M
+"""Far plane (metres), `jaxfish.reprojection.FAR_DEPTH_M`: no hit beyond it; sky and far pixels
+report this range and depth (CARLA's depth camera saturates at 1000 m)."""
 DEFAULT_CHUNK = 4096
 """Rays per chunk of the caster (bounds the (rays x primitives) working set)."""
 _T_MIN = 1e-4
@@ -325,8 +326,8 @@ def _cast_chunk(scene: Scene, posed: _Posed, o: Float[Array, "C 3"], d: Float[Ar
         return _nearest(scene, posed, o, d, jnp.arange(n_box), jnp.arange(n_cap))
 
     t, idx = jax.lax.cond(fits, culled, full, None)
-    hit = t < FAR_M
-    t_safe = jnp.where(hit, t, FAR_M).astype(o.dtype)
+    hit = t < FAR_DEPTH_M
+    t_safe = jnp.where(hit, t, FAR_DEPTH_M).astype(o.dtype)
     p = o + t_safe[:, None] * d
 
     is_gnd = idx == 0
@@ -449,7 +450,7 @@ def _finish(out, valid, pose: Pose):
     out["object_index"] = jnp.where(valid, out["object_index"], -1)
     out["actor_id"] = jnp.where(valid, out["actor_id"], 0)
     out["hit"] = hit
-    return RenderBuffers(valid=valid, depth_m=jnp.where(hit, depth, FAR_M), **out)
+    return RenderBuffers(valid=valid, depth_m=jnp.where(hit, depth, FAR_DEPTH_M), **out)
 
 
 def render_pixels(

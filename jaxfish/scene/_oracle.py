@@ -11,10 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._constants import FAR_DEPTH_M
 from ..calibration import Calibration
 from ..reprojection import CubeRig, build_lut, resample_bilinear, resample_depth, resample_nearest, supersample_offsets
 from ..transforms import Pose
-from ._caster import DEFAULT_CHUNK, FAR_M, render_pixels
+from ._caster import DEFAULT_CHUNK, render_pixels
 from ._model import StreetFrame
 
 _F32 = jnp.float32
@@ -109,7 +110,7 @@ def compare_to_oracle(rgb, range_m, semantic, actor_id, valid, oracle: FisheyeOr
     v = np.asarray(valid) & np.asarray(oracle.valid)
     o_rng = np.asarray(oracle.range_m, np.float64)
     p_rng = np.asarray(range_m, np.float64)
-    both_hit = v & (o_rng < FAR_M) & (p_rng < FAR_M)
+    both_hit = v & (o_rng < FAR_DEPTH_M) & (p_rng < FAR_DEPTH_M)
     rel = np.abs(p_rng - o_rng)[both_hit] / o_rng[both_hit]
     lab = np.asarray(semantic)[v] == np.asarray(oracle.semantic)[v]
     inst = np.asarray(actor_id)[v] == np.asarray(oracle.actor_id)[v]

@@ -15,6 +15,7 @@ from collections.abc import Mapping
 import jax.numpy as jnp
 import numpy as np
 
+from .._constants import DVS_EVENT_DTYPE
 from ..calibration import Calibration, mounting_rotation
 from ..cameras import AbstractCamera, Orthographic, Pinhole
 from ..reprojection import FIVE_FACES, CubeRig
@@ -35,8 +36,8 @@ SEMANTIC_LIDAR_DTYPE = np.dtype(
 """Semantic lidar point dtype, as CARLA's ``SemanticLidarDetection`` raw data."""
 RADAR_DTYPE = np.dtype([("velocity", "<f4"), ("azimuth", "<f4"), ("altitude", "<f4"), ("depth", "<f4")])
 """Radar detection dtype, as CARLA's ``RadarDetection`` raw data (m/s, rad, rad, m)."""
-DVS_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("pol", "?")])
-"""CARLA's DVS event dtype (t in nanoseconds), the same as `jaxfish.io.DVS_EVENT_DTYPE`."""
+DVS_DTYPE = DVS_EVENT_DTYPE
+"""CARLA's DVS event dtype (t in nanoseconds): `jaxfish.io.DVS_EVENT_DTYPE` (the same object)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,7 +194,7 @@ def dvs_events(log_frames: np.ndarray, times_ns: np.ndarray, threshold: float = 
     ESIM-style, as CARLA's DVS: each pixel keeps a reference level starting at the first frame;
     between consecutive sub-frames the log intensity is linear in time, and each crossing of
     ``reference ± threshold`` emits an event (timestamp interpolated, polarity True = brighter) and
-    moves the reference. Returns `DVS_DTYPE` events sorted by time (x = column, y = row, t in ns).
+    moves the reference. Returns `DVS_EVENT_DTYPE` events sorted by time (x = column, y = row, t in ns).
     """
     lf = np.asarray(log_frames, np.float64)
     times = np.asarray(times_ns, np.float64)
@@ -215,14 +216,14 @@ def dvs_events(log_frames: np.ndarray, times_ns: np.ndarray, threshold: float = 
             frac = np.where(np.abs(sp) > 0, (level - la[ys, xs][rep]) / np.where(np.abs(sp) > 0, sp, 1.0), 1.0)
             frac = np.clip(frac, 0.0, 1.0)
             t = times[k - 1] + frac * (times[k] - times[k - 1])
-            ev = np.empty(rep.size, DVS_DTYPE)
+            ev = np.empty(rep.size, DVS_EVENT_DTYPE)
             ev["x"], ev["y"] = xs[rep], ys[rep]
             ev["t"] = np.rint(t).astype(np.int64)
             ev["pol"] = sign > 0
             out.append(ev)
             ref[ys, xs] += sign * threshold * cnt
     if not out:
-        return np.empty(0, DVS_DTYPE)
+        return np.empty(0, DVS_EVENT_DTYPE)
     ev = np.concatenate(out)
     return ev[np.argsort(ev["t"], kind="stable")]
 

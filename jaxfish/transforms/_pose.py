@@ -19,8 +19,8 @@ def _check_trailing(x: Array, shape: tuple[int, ...], what: str) -> None:
 def _matvec(r: Float[Array, "*b 3 3"], v: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
     """``r @ v`` over broadcast batch axes as explicit multiply-adds.
 
-    On XLA-CPU an einsum/dot_general with a tiny contraction over image-sized batches runs ~40x
-    slower than these fused elementwise products (40 ms vs < 1 ms for 1.2M points).
+    Written out because XLA:CPU lowers an einsum / dot_general with a tiny contraction over
+    image-sized batches far slower than these fused elementwise products.
     """
     rows = [r[..., i, 0] * v[..., 0] + r[..., i, 1] * v[..., 1] + r[..., i, 2] * v[..., 2] for i in range(3)]
     return stack_last(rows)

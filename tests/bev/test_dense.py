@@ -183,20 +183,23 @@ def test_bad_arguments_raise_clear_errors(rig):
 
 
 def test_dense_view_covers_far_more_of_the_small_capture(tmp_path_factory):
-    from jaxfish.io import CaptureReader, capture_bev_ground_truth, capture_camera_maps
+    from jaxfish.dataset import CaptureSource, rig_constants_of
+    from jaxfish.pipeline import GroundTruthOptions, bev_truth, camera_maps
     from tests.bev.small_capture import shared_bev_capture
 
-    reader = CaptureReader(shared_bev_capture(tmp_path_factory))
-    maps = capture_camera_maps(reader, 0)
-    truth = capture_bev_ground_truth(reader, 0)
-    args = (maps["cameras"], maps["cameras_to_vehicle"], maps["range_m"], maps["semantic"], truth["camera"],
-            truth["camera_to_vehicle"])
-    splat = bev.fuse_cameras(*args, valid=maps["valid"])
+    source = CaptureSource(shared_bev_capture(tmp_path_factory))
+    frame = source.read(0, sensors=False)
+    constants = rig_constants_of(source)
+    maps = camera_maps(frame, constants)
+    truth = bev_truth(frame, constants, GroundTruthOptions())
+    args = (bev.stack_cameras(list(maps.cameras)), bev.stack_poses(list(maps.cameras_to_vehicle)), maps.range_m,
+            maps.semantic, truth.camera, truth.camera_to_vehicle)
+    splat = bev.fuse_cameras(*args, valid=maps.valid)
     # its ranges are resampled from 16-pixel cube faces: the plane test allows for that step, as jaxfish bev does
-    dense = bev.fuse_cameras_dense(*args, valid=maps["valid"], height_tolerance_rad=0.6 * maps["range_resolution_rad"])
+    dense = bev.fuse_cameras_dense(*args, valid=maps.valid, height_tolerance_rad=0.6 * maps.range_resolution_rad)
     s_cov, d_cov = float(np.mean(np.asarray(splat.observed))), float(np.mean(np.asarray(dense.observed)))
     assert d_cov > 2 * s_cov and d_cov > 0.5
-    t = np.asarray(truth["truth"].semantic)
+    t = np.asarray(truth.view.truth.semantic)
     scores = bev.bev_scores(np.asarray(dense.semantic), t, num_classes=25)
     assert float(scores.coverage) == pytest.approx(d_cov)
     assert float(scores.miou_all) <= float(scores.miou_observed)

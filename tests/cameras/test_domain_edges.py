@@ -19,6 +19,12 @@ STATIONARY = {
     "woodscape": lambda dtype: jf.WoodScapeFisheye((340.0, 33.568, 22.838, -12.615), width=1280, height=966, dtype=dtype),
     "kannala_brandt": lambda dtype: jf.KannalaBrandt(330.0, 331.0, 640.2, 483.1, (0.02, -0.003, 0.001, -0.0001),
                                                       width=1280, height=966, dtype=dtype),
+    "fisheye624": lambda dtype: jf.Fisheye624(330.0, 331.0, 640.2, 483.1, (0.02, -0.003, 0.001, -0.0001, 0.0, 0.0),
+                                              width=1280, height=966, dtype=dtype),
+    "opencv": lambda dtype: jf.OpenCVPinhole(500.0, 501.0, 640.2, 483.1, (-0.3, 0.02, 0.0, 0.0), width=1280, height=966,
+                                             dtype=dtype),
+    "mei": lambda dtype: jf.MeiCamera(500.0, 501.0, 640.2, 483.1, 0.9, (-0.35, 0.02, 0.0, 0.0), width=1280, height=966,
+                                      dtype=dtype),
 }
 
 
@@ -78,6 +84,11 @@ def _models(dtype):
         "eucm": jf.ExtendedUnifiedCamera(300.0, 300.0, 640.0, 483.0, 0.6, 1.1, width=1280, height=966, dtype=dtype),
         "double_sphere": jf.DoubleSphere(300.0, 300.0, 640.0, 483.0, -0.2, 0.6, width=1280, height=966, dtype=dtype),
         "pinhole": jf.Pinhole(500.0, 500.0, 639.5, 482.5, width=1280, height=966, dtype=dtype),
+        "mei": jf.MeiCamera(600.0, 600.0, 640.0, 483.0, 1.1, (-0.2, 0.05, 1e-3, 0.0), width=1280, height=966, dtype=dtype),
+        "opencv": jf.OpenCVPinhole(500.0, 500.0, 639.5, 482.5, (-0.2, 0.05, 1e-3, 0.0), width=1280, height=966, dtype=dtype),
+        "fov": jf.FieldOfView(300.0, 300.0, 640.0, 483.0, 1.5, width=1280, height=966, dtype=dtype),
+        "fisheye624": jf.Fisheye624(330.0, 331.0, 640.0, 483.0, (0.01, 0.0, 0.0, 0.0, 0.0, 0.0), (1e-3, 0.0),
+                                    width=1280, height=966, dtype=dtype),
     }
 
 

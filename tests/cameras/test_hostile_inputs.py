@@ -25,6 +25,12 @@ MODELS = {
     "ucm": lambda: jf.UnifiedCamera(20.0, 20.0, 31.5, 23.5, 0.6, width=W, height=H),
     "eucm": lambda: jf.ExtendedUnifiedCamera(20.0, 20.0, 31.5, 23.5, 0.6, 1.1, width=W, height=H),
     "double_sphere": lambda: jf.DoubleSphere(20.0, 20.0, 31.5, 23.5, -0.2, 0.6, width=W, height=H),
+    "mei": lambda: jf.MeiCamera(40.0, 40.0, 31.5, 23.5, 1.2, (-0.2, 0.05, 1e-3, -1e-3), width=W, height=H),
+    "opencv": lambda: jf.OpenCVPinhole(30.0, 30.0, 31.5, 23.5, (-0.2, 0.05, 1e-3, -1e-3, 0.0, 0.01, 0.0, 0.0, 1e-3, 0.0,
+                                                             -1e-3, 0.0), width=W, height=H),
+    "fov": lambda: jf.FieldOfView(20.0, 20.0, 31.5, 23.5, 1.5, width=W, height=H),
+    "fisheye624": lambda: jf.Fisheye624(20.0, 20.0, 31.5, 23.5, (0.02, -0.003, 0.001, -1e-4, 0.0, 0.0), (1e-3, -1e-3),
+                                        (1e-3, 0.0, -1e-3, 0.0), width=W, height=H),
     "equirectangular": lambda: jf.Equirectangular(width=W, height=H),
     "cylindrical": lambda: jf.Cylindrical(width=W, height=H),
     "orthographic": lambda: jf.Orthographic(0.1, width=W, height=H),
@@ -96,7 +102,12 @@ def test_hostile_pixels_are_masked_finite_with_finite_gradients(model):
     lambda: jf.ExtendedUnifiedCamera(20.0, 20.0, 31.5, 23.5, 1.0, 1.0, width=W, height=H),
     lambda: jf.DoubleSphere(20.0, 20.0, 31.5, 23.5, 1.0, 1.0, width=W, height=H),
     lambda: jf.DoubleSphere(20.0, 20.0, 31.5, 23.5, -1.0, 0.5, width=W, height=H),
-], ids=["eucm_alpha_1", "double_sphere_alpha_1", "double_sphere_xi_-1"])
+    lambda: jf.MeiCamera(20.0, 20.0, 31.5, 23.5, -1.0, width=W, height=H),
+    lambda: jf.FieldOfView(20.0, 20.0, 31.5, 23.5, 0.0, width=W, height=H),
+    lambda: jf.FieldOfView(20.0, 20.0, 31.5, 23.5, 3.5, width=W, height=H),
+    lambda: jf.OpenCVPinhole(20.0, 20.0, 31.5, 23.5, (0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0), width=W, height=H),
+], ids=["eucm_alpha_1", "double_sphere_alpha_1", "double_sphere_xi_-1", "mei_xi_-1", "fov_w_0", "fov_w_beyond_pi",
+        "opencv_rational_pole"])
 def test_degenerate_documented_parameters_keep_values_and_gradients_finite(make):
     cam = make()
     uv = jnp.asarray([[31.5, 23.5], [51.5, 23.5], [231.5, 23.5], [1031.5, 23.5]])  # centre to far outside the rim
@@ -144,6 +155,10 @@ def test_image_sizes_above_the_bound_are_refused():
               lambda w: jf.KannalaBrandt(20.0, 20.0, 31.5, 23.5, (0.02, -0.003, 0.001, -0.0001), width=w, height=H),
               lambda w: jf.UnifiedCamera(20.0, 20.0, 31.5, 23.5, 0.6, width=w, height=H),
               lambda w: jf.DoubleSphere(20.0, 20.0, 31.5, 23.5, -0.2, 0.6, width=w, height=H),
+              lambda w: jf.MeiCamera(20.0, 20.0, 31.5, 23.5, 1.0, width=w, height=H),
+              lambda w: jf.OpenCVPinhole(20.0, 20.0, 31.5, 23.5, width=w, height=H),
+              lambda w: jf.FieldOfView(20.0, 20.0, 31.5, 23.5, 1.0, width=w, height=H),
+              lambda w: jf.Fisheye624(20.0, 20.0, 31.5, 23.5, width=w, height=H),
               lambda w: jf.Equirectangular(width=w, height=H), lambda w: jf.Orthographic(0.1, width=w, height=H)]
     for make in makers:
         assert make(jf.cameras.MAX_IMAGE_SIDE).width == 65536

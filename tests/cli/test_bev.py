@@ -13,8 +13,9 @@ from typer.testing import CliRunner
 
 import jaxfish as jf
 from jaxfish import bev
+from jaxfish.bev import bev_metadata
 from jaxfish.cli import app
-from jaxfish.io import bev_metadata, read_bev_metadata, read_label_png, write_label_png
+from jaxfish.io import read_bev_metadata, read_label_png, write_label_png
 from tests.bev.conftest import render
 from tests.bev.small_capture import BEV_MPP, BEV_SIZE, CAM_H, CAM_W, shared_bev_capture
 
@@ -159,10 +160,13 @@ def test_plane_tolerance_follows_the_cube_faces_the_ranges_were_resampled_from(t
     import math
 
     from jaxfish.cli import _bev as cli_bev
-    from jaxfish.io import CaptureReader, capture_camera_maps
+    from jaxfish.dataset import CaptureSource, rig_constants_of
+    from jaxfish.pipeline import camera_maps
     from tests.bev.small_capture import FACE
 
-    maps = capture_camera_maps(CaptureReader(shared_bev_capture(tmp_path_factory)), 0)
+    source = CaptureSource(shared_bev_capture(tmp_path_factory))
+    cm = camera_maps(source.read(0, bev=False, sensors=False), rig_constants_of(source))
+    maps = {"range_resolution_rad": cm.range_resolution_rad}
     assert maps["range_resolution_rad"] == pytest.approx(math.pi / 2 / FACE)
     assert cli_bev._height_tolerance_rad(maps) == pytest.approx(0.6 * math.pi / 2 / FACE)
     # ranges rendered per fisheye pixel (no cube faces recorded): the library default

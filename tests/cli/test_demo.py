@@ -17,11 +17,12 @@ from tests.hostile.corpus import run_cli
 
 
 def test_demo_renders_builds_and_draws_contact_sheets(tmp_path):
+    """The scene goes to the builder in memory: no capture is written."""
     out = tmp_path / "demo"
     args = ["demo", str(out), "--frames", "1", "--scale", "0.05", "--seed", "1"]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
-    assert (out / "capture" / "capture.json").is_file()
+    assert not (out / "capture").exists() and "rendered in memory" in result.output
     manifest = json.loads((out / "dataset" / "dataset.json").read_text())
     assert manifest["samples"] == ["00000"] and manifest["cameras"] == ["FV", "RV", "MVL", "MVR", "BEV"]
     sheet = read_image(out / "contact_sheets" / "00000.png")
@@ -36,7 +37,7 @@ def test_demo_renders_builds_and_draws_contact_sheets(tmp_path):
     assert again.exit_code == 0, again.output
     assert "0 built, 1 already complete" in again.output
     # Another seed over the demo's own output: rendered and rebuilt in place, the user's files kept.
-    users = [out / "capture" / "rec.mcap", out / "dataset" / "notes" / ".thesis.part1.tex", out / "rec.mcap"]
+    users = [out / "dataset" / "notes" / ".thesis.part1.tex", out / "rec.mcap"]
     for p in users:
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text(p.name)
@@ -44,19 +45,37 @@ def test_demo_renders_builds_and_draws_contact_sheets(tmp_path):
     assert other.exit_code == 0, other.output
     assert "1 built, 0 already complete" in other.output and "removed first (rebuild): 00000" in other.output
     assert all(p.read_text() == p.name for p in users)
-    assert json.loads((out / "capture" / "capture.json").read_text())["seed"] == 2
     assert json.loads((out / "dataset" / "dataset.json").read_text())["capture"]["seed"] == 2
+    assert not (out / "capture").exists()
+
+
+def test_demo_write_capture_builds_the_same_dataset_from_files(tmp_path):
+    """``--write-capture`` renders to OUT/capture and builds from it: the same sample bytes as the
+    in-memory demo (the markers and dataset.json name their source)."""
+    from tests.helpers import tree_bytes
+
+    mem, disk = tmp_path / "mem", tmp_path / "disk"
+    base = ["--frames", "1", "--scale", "0.05", "--seed", "1"]
+    assert CliRunner().invoke(app, ["demo", str(mem), *base]).exit_code == 0
+    result = CliRunner().invoke(app, ["demo", str(disk), *base, "--write-capture"])
+    assert result.exit_code == 0, result.output
+    assert (disk / "capture" / "capture.json").is_file()
+    a, b = tree_bytes(mem / "dataset"), tree_bytes(disk / "dataset")
+    assert sorted(a) == sorted(b)
+    assert sorted(k for k in a if a[k] != b[k]) == [".done/00000.json", "dataset.json"]
+    assert tree_bytes(mem / "contact_sheets") == tree_bytes(disk / "contact_sheets")
 
 
 def test_demo_never_writes_through_a_symlinked_capture(tmp_path, capsys):
-    """``OUT/capture`` a link to a real capture: refused before anything is rendered, the capture
-    untouched (a demo of another seed would have rendered over it)."""
+    """``OUT/capture`` a link to a real capture and ``--write-capture``: refused before anything is
+    rendered, the capture untouched (a demo of another seed would have rendered over it)."""
     real = tmp_path / "real"
     shutil.copytree(small_capture_dir(), real)
     before = {p: p.read_bytes() for p in real.rglob("*") if p.is_file()}
     (tmp_path / "demo").mkdir()
     (tmp_path / "demo" / "capture").symlink_to(real, target_is_directory=True)
-    code, _, err = run_cli(["demo", str(tmp_path / "demo"), "--frames", "1", "--scale", "0.05", "--seed", "2"], capsys)
+    code, _, err = run_cli(["demo", str(tmp_path / "demo"), "--frames", "1", "--scale", "0.05", "--seed", "2",
+                            "--write-capture"], capsys)
     assert code == 2 and "symbolic link" in err, err
     assert {p: p.read_bytes() for p in real.rglob("*") if p.is_file()} == before
     assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == ["capture"]

@@ -186,3 +186,37 @@ def test_convert_and_refit_write_nothing_their_loader_refuses_or_that_is_not_fin
         assert not out.exists() and not report.exists() and not list(tmp_path.iterdir()), field
     _write_outputs(jf.Calibration("FV", good, jf.Pose.identity(dtype=np.float64)), out, report, {"rms_px": 0.1})
     assert load_camera_calibration(out).name == "FV" and json.loads(report.read_text()) == {"rms_px": 0.1}
+
+
+def test_convert_refuses_an_error_beyond_max_error_unless_forced(tmp_path):
+    """The default domain is the image's valid pixels; SynWoodScape FV -> UCM errs by 3.6 px there:
+    nothing written, exit 2, the file, the error and the domain named; --force writes both files and
+    the report states the domain in degrees and pixels."""
+    src = shared_path("calibration/synwoodscape/FV.json")
+    out, rep = tmp_path / "ucm.json", tmp_path / "rep.json"
+    runner = CliRunner()
+    result = runner.invoke(app, ["convert", str(src), "--to", "ucm", "-o", str(out), "-r", str(rep)])
+    assert result.exit_code == 2, result.output
+    assert str(src) in result.output and "exceeds --max-error 2 px" in result.output
+    assert "1280x966 image's valid pixels (up to 110.6 deg off-axis, 804 px from the principal point)" in result.output
+    assert not out.exists() and not rep.exists()
+    result = runner.invoke(app, ["convert", str(src), "--to", "ucm", "-o", str(out), "-r", str(rep), "--force"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(rep.read_text())
+    assert report["max_px"] > 2.0 and report["forced"] and report["num_target_invalid"] == 0
+    assert report["domain"]["kind"] == "image" and report["domain"]["image_width"] == 1280
+    assert report["domain"]["theta_max_deg"] == pytest.approx(110.6, abs=0.1)
+    assert report["domain"]["max_radius_px"] == pytest.approx(804.0, abs=2.0)
+    assert load_camera_calibration(out).camera.__class__.__name__ == "UnifiedCamera"
+    result = runner.invoke(app, ["convert", str(src), "--to", "ucm", "-o", str(out), "--max-error", "5"])
+    assert result.exit_code == 0, result.output
+
+
+def test_convert_to_double_sphere_over_the_image_is_the_global_fit(tmp_path):
+    src = shared_path("calibration/synwoodscape/MVR.json")
+    out, rep = tmp_path / "ds.json", tmp_path / "rep.json"
+    result = CliRunner().invoke(app, ["convert", str(src), "--to", "ds", "-o", str(out), "-r", str(rep)])
+    assert result.exit_code == 0, result.output
+    report = json.loads(rep.read_text())
+    assert report["max_px"] < 2.0 and report["rms_px"] < 0.4 and report["num_starts"] > 1
+    assert -0.3 < float(load_camera_calibration(out).camera.xi) < -0.15

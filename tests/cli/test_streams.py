@@ -20,7 +20,7 @@ def test_convert_report_on_stdout_nothing_on_stderr(tmp_path):
     assert result.exit_code == 0, result.output
     lines = result.stdout.splitlines()
     summary = json.loads(report.read_text())
-    assert lines[0].startswith("radial_poly -> kannala_brandt up to") and f"rms {summary['rms_px']:.4g} px" in lines[0]
+    assert lines[0].startswith("radial_poly -> kannala_brandt over the 1280x966 image") and f"rms {summary['rms_px']:.4g} px" in lines[0]
     assert lines[1] == f"wrote {out}" and len(lines) == 2  # one line each: never hard-wrapped
     assert result.stderr == ""
 

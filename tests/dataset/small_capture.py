@@ -11,7 +11,7 @@ import tempfile
 from pathlib import Path
 
 from jaxfish.cli._demo import demo_config, demo_rig
-from jaxfish.io import synthesize_capture
+from jaxfish.dataset import synthesize_capture
 
 SCALE = 0.05
 SEED = 1

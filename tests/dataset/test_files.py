@@ -8,8 +8,8 @@ import time
 
 import numpy as np
 
-from jaxfish.io import depth_to_color, write_npz
-from jaxfish.io._labels import map_face_events
+from jaxfish.io import write_npz
+from jaxfish.pipeline import depth_to_color, map_face_events
 
 
 def test_numpy_event_mapping_follows_the_rule():
@@ -58,7 +58,8 @@ def test_depth_colors_near_bright_far_dark_sky_black():
     lum = c[0].sum(-1)
     assert lum[0] > lum[1] > lum[2] > 0 and lum[3] == 0 and lum[4] == 0
     # float32 evaluation: within one step of the 1024-step ramp of the float64 formula.
-    from jaxfish.io._labels import DEPTH_COLOR_RANGE_M, _depth_ramp
+    from jaxfish.pipeline import DEPTH_COLOR_RANGE_M
+    from jaxfish.pipeline._render import _depth_ramp
 
     d = np.geomspace(0.01, 998.0, 5000).astype(np.float32)[None]
     lo, hi = DEPTH_COLOR_RANGE_M

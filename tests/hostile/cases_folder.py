@@ -54,6 +54,7 @@ def _carla_capture(tmp: Path) -> None:
 
 
 DEMO = "demo {tmp}/demo --frames 1 --scale 0.05"
+DEMO_CAPTURE = DEMO + " --write-capture"
 SYNTH = "synth --out {tmp}/out --face-size 8 --bev-size 8 --front-width 8 --dvs-substeps 1"
 
 CASES = [
@@ -83,16 +84,19 @@ CASES = [
          absent=("{tmp}/out/capture.json", "{tmp}/out/calibration")),
     Case("folder-synth-into-a-file", SYNTH.replace("{tmp}/out", "{tmp}/out/rec.mcap"), setup=_user_file("out/rec.mcap"),
          says=("rec.mcap", "not a folder"), kept=("{tmp}/out/rec.mcap",)),
-    Case("folder-demo-symlinked-capture", DEMO, setup=_symlinked("capture"), says=("{tmp}/demo/capture", "symbolic link"),
+    Case("folder-demo-symlinked-capture", DEMO_CAPTURE, setup=_symlinked("capture"),
+         says=("{tmp}/demo/capture", "symbolic link"),
          kept=("{tmp}/capture/capture.json",), absent=("{tmp}/demo/dataset",)),
+    Case("folder-demo-in-memory-leaves-a-symlinked-capture-alone", DEMO, setup=_symlinked("capture"), exit=0,
+         stdout_says=("rendered in memory",), kept=("{tmp}/capture/capture.json",)),
     Case("folder-demo-symlinked-dataset", DEMO, setup=_symlinked("dataset"), says=("{tmp}/demo/dataset", "symbolic link"),
          absent=("{tmp}/demo/capture", "{tmp}/capture/.done")),
     Case("folder-demo-symlinked-contact-sheets", DEMO, setup=_symlinked("contact_sheets"),
          says=("{tmp}/demo/contact_sheets", "symbolic link"), absent=("{tmp}/demo/capture", "{tmp}/demo/dataset")),
-    Case("folder-demo-foreign-capture-folder", DEMO, setup=_user_file("demo/capture/rec.mcap"),
+    Case("folder-demo-foreign-capture-folder", DEMO_CAPTURE, setup=_user_file("demo/capture/rec.mcap"),
          says=("not a jaxfish capture", "rec.mcap"), kept=("{tmp}/demo/capture/rec.mcap",),
          absent=("{tmp}/demo/capture/capture.json", "{tmp}/demo/dataset")),
-    Case("folder-demo-over-a-carla-capture", DEMO, setup=_carla_capture, says=("source 'carla'", "use another OUT"),
+    Case("folder-demo-over-a-carla-capture", DEMO_CAPTURE, setup=_carla_capture, says=("source 'carla'", "use another OUT"),
          absent=("{tmp}/demo/dataset",)),
     Case("folder-demo-foreign-dataset-folder", DEMO, setup=_user_file("demo/dataset/rec.mcap"),
          says=("not a jaxfish dataset",), kept=("{tmp}/demo/dataset/rec.mcap",), absent=("{tmp}/demo/capture",)),

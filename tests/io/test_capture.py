@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import jaxfish as jf
-from jaxfish.io import DVS_EVENT_DTYPE, CaptureError, CaptureReader, synthesize_capture
+from jaxfish.dataset import synthesize_capture
+from jaxfish.io import DVS_EVENT_DTYPE, CaptureError, CaptureReader
 from jaxfish.scene import (
     RADAR_DTYPE,
     SEMANTIC_LIDAR_DTYPE,

@@ -14,9 +14,9 @@ from jaxfish.io import (
     read_events_npy,
     read_events_tonic,
     read_image,
-    write_events_color,
     write_events_npy,
     write_events_tonic,
+    write_image,
 )
 
 
@@ -66,6 +66,8 @@ def test_wrong_dtype_and_missing_files(tmp_path):
 
 def test_colour_rendering(tmp_path):
     ev = carla_events([1, 2], [0, 3], [5, 6], [True, False])
-    write_events_color(tmp_path / "c.png", ev, width=4, height=5)
+    from jaxfish.pipeline import events_color
+
+    write_image(tmp_path / "c.png", events_color(ev, width=4, height=5))
     img = read_image(tmp_path / "c.png")
     assert img[0, 1].tolist() == [0, 0, 255] and img[3, 2].tolist() == [255, 0, 0] and img[1, 1].tolist() == [255] * 3

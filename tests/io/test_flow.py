@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from jaxfish import ImageError
-from jaxfish.io import read_flo, read_image, read_kitti_flow, write_flo, write_flow_color, write_kitti_flow
+from jaxfish.groundtruth import flow_to_color
+from jaxfish.io import read_flo, read_image, read_kitti_flow, write_flo, write_image, write_kitti_flow
 from tests import tolerances as tol
 
 
@@ -57,7 +58,7 @@ def test_kitti_round_trip(tmp_path):
 
 
 def test_flow_colour_png(tmp_path):
-    write_flow_color(tmp_path / "c.png", _flow())
+    write_image(tmp_path / "c.png", np.asarray(flow_to_color(_flow())))
     img = read_image(tmp_path / "c.png")
     assert img.dtype == np.uint8 and img.shape == (7, 9, 3)
 

@@ -11,7 +11,8 @@ import jax.numpy as jnp
 import pytest
 
 import jaxfish as jf
-from jaxfish.io import CaptureError, atomic_path, atomic_write_text, synthesize_capture
+from jaxfish.dataset import synthesize_capture
+from jaxfish.io import CaptureError, atomic_path, atomic_write_text
 from jaxfish.io._folder import RUN_ID, folder_lock, is_temporary, remove_temporaries
 from jaxfish.scene import CaptureConfig
 

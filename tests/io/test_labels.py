@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from jaxfish import ImageError
+from jaxfish.dataset import synwoodscape_palette_dict
+from jaxfish.dataset._sink import boxes_2d_rows
 from jaxfish.io import (
-    boxes_2d_rows,
     read_boxes_2d_csv,
     read_boxes_3d_pickle,
     read_displacements,
     read_image,
     read_label_png,
     read_palette,
-    synwoodscape_palette_dict,
     write_boxes_2d_csv,
     write_boxes_3d_pickle,
     write_color_png,
@@ -84,7 +84,7 @@ def test_box_pickle_and_displacements(tmp_path):
 
 def test_box_slots_share_one_size_across_actor_counts():
     from jaxfish import groundtruth as gt
-    from jaxfish.io._labels import BOX_SLOT_QUANTUM, box_slots
+    from jaxfish.pipeline import BOX_SLOT_QUANTUM, box_slots
 
     q = BOX_SLOT_QUANTUM
     assert [box_slots(n) for n in (0, 1, q, q + 1, 3 * q)] == [q, q, q, 2 * q, 3 * q]

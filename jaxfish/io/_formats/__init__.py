@@ -21,6 +21,8 @@ from ..._errors import CalibrationError
 from ...calibration import Calibration
 from ...refit._parameters import PARAMETER_NAMES, canonical_model_name, intrinsics_to_dict
 from .._atomic import atomic_write_text
+from .._calibration_json import load_calibration as load_woodscape_calibration
+from .._correspondences import camera_calibration_from_dict
 from .._json import read_json, regular_file, to_json_text
 from . import _basalt, _carla, _colmap, _kalibr, _opencv
 from ._common import CameraRecord, ModelMapping, file_stem, short, string_parameters, writable_models
@@ -121,8 +123,6 @@ def read_calibration_file(path: str | os.PathLike, *, dtype=None, fmt: str | Non
     """Every camera of a calibration file of any format (`detect_calibration_format`), in file
     order, as `Calibration` objects of jaxfish lens models. Problems raise `CalibrationError`
     naming the file and field (a model this jaxfish does not have included)."""
-    from .._correspondences import camera_calibration_from_dict
-
     path = Path(path)
     fmt = detect_calibration_format(path) if fmt is None else fmt
     if fmt == "jaxfish":
@@ -139,8 +139,6 @@ def read_calibration_paths(paths: Sequence[str | os.PathLike], *, dtype=None) ->
     """Every camera of several calibration paths, in order: files of any format (all their
     cameras; ``PATH::NAME`` one of them), COLMAP folders, and folders of jaxfish calibration JSON
     files (a rig folder: its ``*.json`` in name order). Camera names must differ."""
-    from .._correspondences import load_camera_calibration
-
     out: list[Calibration] = []
     for p in paths:
         path = Path(p)
@@ -161,6 +159,61 @@ def read_calibration_paths(paths: Sequence[str | os.PathLike], *, dtype=None) ->
                                "camera names must differ")
     return out
 
+
+def load_camera_calibration(path: str | os.PathLike, *, dtype=None, camera: str | None = None) -> Calibration:
+    """Read a calibration of any lens model: jaxfish's calibration JSON (WoodScape ``radial_poly``
+    files included) or another tool's file (kalibr camchain YAML, COLMAP ``cameras.txt`` or its
+    folder, OpenCV FileStorage YAML, basalt JSON, CARLA sensor JSON: ``docs/interop.md``), told
+    apart by name and content. A file of several cameras needs ``camera`` (a name, or an index
+    such as ``"0"``) unless it holds one; ``PATH::NAME`` (a path that does not exist as written)
+    names it too, so that every command-line calibration argument can pick a camera."""
+    text = os.fspath(path)
+    if camera is None and "::" in text and not Path(text).exists():
+        text, camera = text.rsplit("::", 1)
+    path = Path(text)
+    fmt = detect_calibration_format(path)
+    if fmt == "jaxfish":
+        return camera_calibration_from_dict(read_json(path, CalibrationError), source=str(path), dtype=dtype)
+    return select_camera(read_calibration_file(path, dtype=dtype, fmt=fmt), path, camera)
+
+
+def load_calibration(path: str | os.PathLike, *, apply_errata: bool = False, dtype=None) -> Calibration:
+    """Load a WoodScape or SynWoodScape calibration JSON file.
+
+    - WoodScape files (key ``"translation"``) are in the ISO 8855 vehicle frame.
+    - SynWoodScape files (key ``"translation used in CARLA (CARLA reference)"``) store the
+      translation in CARLA's frame (y right); it is converted to ISO 8855 (y flipped) so that
+      `Calibration.camera_to_vehicle` is consistent; the quaternion is used as is.
+    - ``apply_errata=True`` (SynWoodScape files only) replaces the published translation with the
+      dataset author's correction (`SYNWOODSCAPE_CORRECTED_TRANSLATIONS_CARLA`, WoodScape issue
+      #113): the published MVL/MVR translations are wrong. Other fixes: `eqx.tree_at` on the result.
+
+    Raises `FileNotFoundError` for a missing file and `CalibrationError` (a `ValueError`) naming
+    the file and field for anything malformed, and naming the path when it is not a regular file
+    (a directory, a FIFO, a symbolic link loop).
+
+    Another tool's calibration file (kalibr, COLMAP, OpenCV, basalt, CARLA: ``docs/interop.md``)
+    is read as `load_camera_calibration` reads it (its one camera, or ``PATH::NAME``'s, of any
+    lens model).
+    """
+    if ("::" in os.fspath(path) and not Path(path).exists()) or detect_calibration_format(path) != "jaxfish":
+        return load_camera_calibration(path, dtype=dtype)
+    return load_woodscape_calibration(path, apply_errata=apply_errata, dtype=dtype)
+
+
+def select_camera(calibs: list[Calibration], path: Path, camera: str | None) -> Calibration:
+    """One calibration of a file's cameras: by name, by index, or the only one."""
+    names = [c.name for c in calibs]
+    if camera is None:
+        if len(calibs) == 1:
+            return calibs[0]
+        raise CalibrationError(f"{path}: holds {len(calibs)} cameras ({', '.join(names)}); say which one "
+                               f"({path}::NAME)")
+    if camera in names:
+        return calibs[names.index(camera)]
+    if camera.isdigit() and int(camera) < len(calibs):
+        return calibs[int(camera)]
+    raise CalibrationError(f"{path}: no camera {camera!r} (cameras: {', '.join(names)})")
 
 def _read_records(path: Path, fmt: str) -> list[CameraRecord]:
     if fmt == "colmap":

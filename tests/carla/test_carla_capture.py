@@ -12,9 +12,7 @@ import pytest
 
 import jaxfish as jf
 from jaxfish.cameras import Orthographic
-from jaxfish.io import (
-    DVS_EVENT_DTYPE,
-    CaptureReader,
+from jaxfish.carla import (
     CarlaCaptureError,
     CarlaImages,
     bev_pinhole,
@@ -24,16 +22,12 @@ from jaxfish.io import (
     carla_actor_records,
     carla_angles_from_matrix,
     carla_ego_motion,
+    carla_frame_records,
+    carla_frame_sensors,
     carla_semantic_tags,
     carla_street_frame,
     cube_face_mounts,
-    decode_depth,
-    decode_instance,
-    decode_semantic,
     dvs_to_events,
-    encode_depth,
-    encode_instance,
-    encode_semantic,
     finish_carla_header,
     gnss_to_dict,
     height_from_depth,
@@ -43,17 +37,27 @@ from jaxfish.io import (
     lidar_to_points,
     parse_carla_version,
     radar_to_records,
-    read_image,
     rear_axle_origin,
     rig_on_actor,
     semantic_lidar_to_records,
     sensor_carla_mounts,
     set_blueprint_attributes,
-    synthesize_capture,
     validate_weather,
     with_bev_altitude,
-    write_capture_header,
     write_carla_frame,
+)
+from jaxfish.dataset import synthesize_capture
+from jaxfish.io import (
+    DVS_EVENT_DTYPE,
+    CaptureReader,
+    decode_depth,
+    decode_instance,
+    decode_semantic,
+    encode_depth,
+    encode_instance,
+    encode_semantic,
+    read_image,
+    write_capture_header,
 )
 from jaxfish.reprojection import CUBE_FACE_ROTATIONS, FIVE_FACES, CubeRig
 from jaxfish.scene import (
@@ -65,6 +69,7 @@ from jaxfish.scene import (
     sensor_mounts,
 )
 from jaxfish.transforms import Pose, carla_camera_pose_to_opencv, carla_rotation_matrix
+from tests.helpers import tree_bytes
 from tests.tolerances import CARLA_HEIGHT_FROM_DEPTH_M, POSE_F64
 
 # The sizes of tests/io/test_capture.py's capture: the embedded scene's compiled renderers are shared.
@@ -297,8 +302,9 @@ def _fake_world(root, frame):
     return reader, fake_actors[::-1], world, ego  # reversed: the records put the ego first themselves
 
 
-def test_embedded_frame_through_the_carla_path_is_byte_identical(embedded, tmp_path):
-    root, rig = embedded
+def _carla_inputs(root):
+    """The CARLA path's inputs for frame 0 of an embedded capture: fake actors and snapshots through
+    `carla_actor_records`, the raw BGRA images, DVS events, height maps and readings of its files."""
     reader, fake_actors, (snap_prev, snap), ego = _fake_world(root, 0)
     records = carla_actor_records(fake_actors, snap_prev, snap, ego_id=ego["id"], tag_table="0.9.10")
     frame = carla_street_frame(0, ego["timestamp_s"], records, carla_ego_motion(snap.find(ego["id"])),
@@ -318,14 +324,20 @@ def test_embedded_frame_through_the_carla_path_is_byte_identical(embedded, tmp_p
     fake_imu = SimpleNamespace(accelerometer=_vec(imu["accelerometer"]), gyroscope=_vec(imu["gyroscope"]),
                                compass=imu["compass"], timestamp=imu["timestamp_s"])
     fake_gnss = SimpleNamespace(timestamp=gnss["timestamp_s"], **{k: gnss[k] for k in ("latitude", "longitude", "altitude")})
+    sensors = {"lidar": lidar_to_points(reader.lidar(0).tobytes()),
+               "semantic_lidar": semantic_lidar_to_records(reader.semantic_lidar(0).tobytes()),
+               "radar": radar_to_records(reader.radar(0).tobytes()), "imu": imu_to_dict(fake_imu),
+               "gnss": gnss_to_dict(fake_gnss)}
+    return reader, frame, faces, views, sensors, (fake_imu, fake_gnss)
+
+
+def test_embedded_frame_through_the_carla_path_is_byte_identical(embedded, tmp_path):
+    root, rig = embedded
+    reader, frame, faces, views, sensors, (fake_imu, fake_gnss) = _carla_inputs(root)
     out = tmp_path / "carla"
     mounts = sensor_mounts(rig, SMALL)
     write_capture_header(out, rig, SMALL, mounts, seed=3)
-    write_carla_frame(out, frame, faces=faces, views=views,
-                      lidar=lidar_to_points(reader.lidar(0).tobytes()),
-                      semantic_lidar=semantic_lidar_to_records(reader.semantic_lidar(0).tobytes()),
-                      radar=radar_to_records(reader.radar(0).tobytes()), imu=imu_to_dict(fake_imu),
-                      gnss=gnss_to_dict(fake_gnss))
+    write_carla_frame(out, frame, faces=faces, views=views, **sensors)
     files = sorted(p.relative_to(root) for p in root.rglob("*") if p.is_file())
     extra = out / "frames" / "000000" / "carla_frame.json"  # the CARLA path's one extra file
     assert json.loads(extra.read_text()) == {"dvs_missing": []}
@@ -351,6 +363,43 @@ def test_embedded_frame_through_the_carla_path_is_byte_identical(embedded, tmp_p
     np.testing.assert_array_equal(img.semantic, decode_semantic(old.semantic))
     assert not img.actor_id.any()
     assert back.sensors()["bev"]["carla_camera"]["altitude_m"] == 500.0
+
+
+def test_a_frame_assembled_in_memory_is_what_the_reader_decodes_from_the_written_frame(embedded, tmp_path):
+    root, rig = embedded
+    _, frame, faces, views, sensors, _ = _carla_inputs(root)
+    out = tmp_path / "carla"
+    write_capture_header(out, rig, SMALL, sensor_mounts(rig, SMALL), seed=3, source="carla")
+    write_carla_frame(out, frame, faces=faces, views=views, **sensors)
+    back = CaptureReader(out)
+    actors, ego = carla_frame_records(frame)
+    assert actors == back.actors(0) and ego == back.ego(0)
+    assert all(type(v) is list for v in (ego["velocity"], actors[1]["transform"]["location"]))  # JSON types
+    got = carla_frame_sensors(frame, **sensors)
+    for name in ("lidar", "semantic_lidar", "radar"):
+        want = getattr(back, name)(0)
+        assert got[name].dtype == want.dtype
+        np.testing.assert_array_equal(got[name], want)
+    assert got["imu"] == back.imu(0) and got["gnss"] == back.gnss(0)
+    for face, (prev, curr, _) in faces["FV"].items():
+        for instant, images in (("prev", prev), ("curr", curr)):
+            mine, theirs = images.decoded(f"FV/{face}", instant, actor_ids=True), back.face(0, "FV", face, instant)
+            for k in ("rgb", "depth_m", "semantic", "actor_id"):
+                assert getattr(mine, k).dtype == getattr(theirs, k).dtype, k
+                np.testing.assert_array_equal(getattr(mine, k), getattr(theirs, k))
+    mine = views["bev"][1].decoded("bev", "curr")
+    assert mine.actor_id is None
+    np.testing.assert_array_equal(mine.depth_m, back.view(0, "bev").depth_m)
+    # Without an instance camera (CARLA < 0.9.14) the ids read back are 0, as the writer fills them in.
+    old = CarlaImages(curr.rgb, curr.depth, curr.semantic).decoded("FV/top", "curr", actor_ids=True)
+    assert old.actor_id.dtype == np.int32 and not old.actor_id.any()
+    with pytest.raises(CarlaCaptureError, match=r"FV/top: depth_prev is \(3, 32, 4\)"):
+        CarlaImages(curr.rgb, curr.depth[:3], curr.semantic).decoded("FV/top", "prev")
+    bad = dict(sensors, lidar=np.full((2, 4), np.nan, np.float32))
+    with pytest.raises(CarlaCaptureError, match="frame 0: lidar: 8 value"):
+        carla_frame_sensors(frame, **bad)
+    with pytest.raises(CarlaCaptureError, match="frame 0 imu.json"):
+        carla_frame_sensors(frame, **dict(sensors, imu={"compass": float("nan")}))
 
 
 def test_front_height_map_from_depth_matches_the_scene(embedded):
@@ -414,7 +463,13 @@ def test_frame_assembly_rejects_bad_inputs(embedded, tmp_path):
         write_carla_frame(tmp_path, frame, faces={"FV": {"front": (ok, ok, np.zeros(0, DVS_EVENT_DTYPE))}}, views={},
                           lidar=np.zeros((0, 4)), semantic_lidar=np.zeros(0, SEMANTIC_LIDAR_DTYPE),
                           radar=np.zeros(0, RADAR_DTYPE), imu={}, gnss={}, dvs_missing=["FV/nope"])
+    with pytest.raises(CarlaCaptureError, match=r"bev: height map \(3, 4\)"):  # a view after a good face
+        write_carla_frame(tmp_path, frame, faces={"FV": {"front": (ok, ok, np.zeros(0, DVS_EVENT_DTYPE))}},
+                          views={"bev": (ok, ok, np.zeros((3, 4)))}, lidar=np.zeros((0, 4)),
+                          semantic_lidar=np.zeros(0, SEMANTIC_LIDAR_DTYPE), radar=np.zeros(0, RADAR_DTYPE), imu={},
+                          gnss={})
     assert json.loads((tmp_path / "capture.json").read_text())["frames"] == []  # nothing listed
+    assert not (tmp_path / "frames" / "000000").exists()  # and nothing written: inputs are checked first
 
 
 # ---------------------------------------------------------------------------- the program, on a fake CARLA
@@ -724,6 +779,28 @@ def test_the_program_on_a_fake_carla(script, tmp_path, monkeypatch, capsys):
     assert "weather preset 'Sunny' is unknown" in capsys.readouterr().err
 
 
+def test_a_second_writer_of_a_capture_folder_is_refused(script, tmp_path, monkeypatch, capsys):
+    from jaxfish.io import CaptureError
+    from jaxfish.io._folder import folder_lock
+
+    fake = _FakeCarla("0.9.13")
+    monkeypatch.setattr(script, "import_carla", lambda: fake)
+    folder = tmp_path / "out" / "ClearNoon"
+    folder.mkdir(parents=True)
+    argv = ["--out", str(tmp_path / "out"), "--frames", "1", "--warmup", "2", "--face-size", "8", "--bev-size", "8",
+            "--front-size", "8", "6", "--vehicles", "0", "--walkers", "0", "--vehicle-origin", "actor"]
+    with folder_lock(folder, CaptureError, "capture writer"):  # another writer holds the folder
+        assert script.main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"error: {folder}: another jaxfish capture writer is writing into this folder" in err
+    assert "Traceback" not in err and list(folder.iterdir()) == []  # nothing written
+    assert fake.world.actors == {} and fake.world.next_id == 100  # nothing spawned before the lock failed
+    (folder / "notes.txt").write_text("mine")  # a folder that is not a capture: refused, its file kept
+    assert script.main(argv) == 2
+    assert "not empty and not a jaxfish capture" in capsys.readouterr().err
+    assert [p.name for p in folder.iterdir()] == ["notes.txt"] and fake.world.actors == {}
+
+
 def _session(script, fake, argv):
     return script.Session(fake, fake.Client("h", 1), script.parse_args(["--out", "x", *argv]))
 
@@ -797,21 +874,169 @@ def test_vehicle_origin_option(script):
 def test_dry_run_lists_the_sensors_without_a_server(script, capsys, monkeypatch):
     monkeypatch.setattr(script, "import_carla", lambda: pytest.fail("a dry run must not import carla"))
     assert script.main(["--dry-run", "--carla-version", "0.9.14", "--face-size", "16"]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    printed = capsys.readouterr()
+    lines = printed.out.splitlines()
     assert lines[0] == "113 sensors for CARLA 0.9.14 (tags 0.9.14):" and len(lines) == 114  # 4 x 5 x 5 + 2 x 4 + 5
     assert any(line.startswith("camera/MVL/top/instance") and "image_size_x=16" in line for line in lines)
+    # 16-px faces undersample the default rig's fisheyes: warned about as `jaxfish synth` does.
+    assert printed.err.startswith("warning: cube faces of 16 px undersample") and "at least" in printed.err
+    # The default face size suffices for the default rig: no warning.
+    assert script.main(["--dry-run"]) == 0
+    printed = capsys.readouterr()
+    assert printed.err == "" and "camera/FV/front/rgb" in printed.out and "image_size_x=1152" in printed.out
     assert script.main(["--dry-run", "--carla-version", "0.9.9"]) == 2
     with pytest.raises(SystemExit):
         script.parse_args(["--frames", "3"])  # --out is required for a capture
 
 
-def test_carla_is_imported_only_when_a_capture_runs():
+def test_the_package_imports_without_the_carla_client(monkeypatch):
     import ast
-    import inspect
+    import subprocess
+    import sys
+    from pathlib import Path
 
-    import jaxfish.io._carla_capture as module
+    import jaxfish.carla as package
 
-    tree = ast.parse(inspect.getsource(module))
-    top = [n for n in tree.body if isinstance(n, ast.Import | ast.ImportFrom)]
-    names = [a.name for n in top if isinstance(n, ast.Import) for a in n.names] + [n.module or "" for n in top if isinstance(n, ast.ImportFrom)]
-    assert not [n for n in names if n.split(".")[0] == "carla"]
+    for path in sorted(Path(package.__file__).parent.glob("*.py")):  # no module imports carla at its top
+        tree = ast.parse(path.read_text())
+        top = [n for n in tree.body if isinstance(n, ast.Import | ast.ImportFrom)]
+        names = [a.name for n in top if isinstance(n, ast.Import) for a in n.names] + [n.module or "" for n in top if isinstance(n, ast.ImportFrom)]
+        assert not [n for n in names if n.split(".")[0] == "carla"], path
+    # A fresh interpreter where `import carla` fails still imports the package (the client is an optional extra).
+    code = "import sys; sys.modules['carla'] = None; import jaxfish.carla; assert sys.modules['carla'] is None"
+    subprocess.run([sys.executable, "-c", code], check=True)
+    monkeypatch.setitem(sys.modules, "carla", None)
+    with pytest.raises(CarlaCaptureError, match=r"pip install 'jaxfish\[carla\]'"):
+        package.import_carla()
+
+
+# ---------------------------------------------------------------------------- the online mode
+def _leaves_equal(a, b) -> None:
+    """Two pytrees (e.g. `jaxfish.pipeline.Frame`s): the same structure and static fields, and the
+    same arrays (dtype, shape, values)."""
+    import jax
+
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    assert ta == tb
+    for x, y in zip(la, lb, strict=True):
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.dtype == y.dtype and x.shape == y.shape
+        np.testing.assert_array_equal(x, y)
+
+
+def _online_argv(tmp_path, mode: str) -> list[str]:
+    calib = tmp_path / "calib"
+    if not calib.is_dir():  # header order MVL, RV; dataset order RV, MVL
+        rig = jf.default_rig()
+        jf.save_rig({n: rig[n].resize(32, 24) for n in ("MVL", "RV")}, calib)
+    return [mode, str(tmp_path / mode.strip("-")), "--frames", "2", "--warmup", "2", "--weather", "WetSunset",
+            "--calibration", str(calib), "--face-size", "8", "--bev-size", "8", "--front-size", "8", "6",
+            "--vehicles", "2", "--walkers", "1"]
+
+
+def test_the_online_mode_builds_from_the_frames_the_offline_capture_reads_back(script, tmp_path, monkeypatch, capsys):
+    """For the same (fake) ticks, the builder of the online mode reads, frame for frame and array for
+    array, what `CaptureSource` reads from the offline mode's capture, and writes the same sample files."""
+    import jaxfish.dataset
+    from jaxfish.dataset import CaptureSource, build_dataset
+
+    monkeypatch.setattr(script, "import_carla", lambda: _FakeCarla("0.9.13"))
+    assert script.main(_online_argv(tmp_path, "--out")) == 0
+    capture = tmp_path / "out" / "WetSunset"
+    seen: dict = {}
+
+    def spy(source, out_dir, **kwargs):  # the real builder, recording what it reads of the source
+        read = source.read
+        source.read = lambda index, **kw: seen.setdefault(index, read(index, **kw))
+        seen["source"] = source
+        return build_dataset(source, out_dir, **kwargs)
+
+    monkeypatch.setattr(jaxfish.dataset, "build_dataset", spy)
+    fake = _FakeCarla("0.9.13")
+    monkeypatch.setattr(script, "import_carla", lambda: fake)
+    assert script.main(_online_argv(tmp_path, "--build")) == 0
+    printed = capsys.readouterr().out
+    assert "sample 00001 built (2/2" in printed and "[WetSunset] dataset built in" in printed
+    assert not (tmp_path / "build" / "WetSunset" / "frames").exists()  # no capture written
+    # Everything spawned is gone; the online mode spawns no front view and no instance camera.
+    assert fake.world.actors == {} and not fake.world.settings.synchronous_mode
+    captured, online = CaptureSource(capture), seen["source"]
+    assert online.cameras == captured.cameras == ["RV", "MVL"] and online.faces == captured.faces
+    assert online.face_size == captured.face_size == 8 and online.carla_tags == captured.carla_tags == "0.9.10"
+    assert online.describe() == captured.describe()
+    for cam in captured.cameras:
+        assert online.calibration_bytes(cam) == captured.calibration_bytes(cam)
+    _leaves_equal(online.rig(), captured.rig())
+    _leaves_equal(online.bev_sensor(), captured.bev_sensor())
+    assert sorted(k for k in seen if k != "source") == captured.frames == [0, 1]
+    for k in captured.frames:
+        _leaves_equal(seen[k], captured.read(k))
+    # The builds: every sample file byte for byte (dataset.json and the markers name their source).
+    build_dataset(capture, tmp_path / "offline")
+    online_files, offline_files = (tree_bytes(d) for d in (tmp_path / "build" / "WetSunset", tmp_path / "offline"))
+    for files in (online_files, offline_files):
+        for name in [n for n in files if n == "dataset.json" or n.startswith(".done/")]:
+            del files[name]
+    assert sorted(online_files) == sorted(offline_files) and len(online_files) > 20
+    assert [n for n in online_files if online_files[n] != offline_files[n]] == []
+
+
+def test_the_online_mode_refuses_a_folder_it_cannot_build_into(script, tmp_path, monkeypatch, capsys):
+    from jaxfish.dataset import DatasetError
+    from jaxfish.io._folder import folder_lock
+
+    fake = _FakeCarla("0.9.13")
+    monkeypatch.setattr(script, "import_carla", lambda: fake)
+    argv = _online_argv(tmp_path, "--build")
+    folder = tmp_path / "build" / "WetSunset"
+    folder.mkdir(parents=True)
+    with folder_lock(folder, DatasetError, "build"):  # another build holds it
+        assert script.main(argv) == 2
+    assert f"error: {folder}: another jaxfish build is writing into this folder" in capsys.readouterr().err
+    (folder / ".done").mkdir()
+    (folder / ".done" / "00000.json").write_text("{}")  # samples of an earlier build: no resume
+    assert script.main(argv) == 2
+    assert "holds samples of an earlier build" in capsys.readouterr().err
+    (folder / ".done" / "00000.json").unlink()
+    (folder / ".done").rmdir()
+    (folder / "notes.txt").write_text("mine")
+    assert script.main(argv) == 2
+    assert "not empty and not a jaxfish dataset" in capsys.readouterr().err
+    assert fake.world.next_id == 100 and fake.world.actors == {}  # nothing spawned for any of them
+    with pytest.raises(SystemExit):
+        script.parse_args(argv + ["--out", str(tmp_path / "x")])  # --out and --build exclude each other
+
+
+def test_carla_source_reads_a_live_session_in_order(tmp_path):
+    from jaxfish.carla import CarlaSource
+    from jaxfish.dataset import EmbeddedSource
+
+    rig = {"FV": jf.default_rig()["FV"].resize(32, 24)}
+    embedded = EmbeddedSource(rig, frames=3, seed=1, config=SMALL)
+    calls = []
+
+    def next_frame(k):
+        calls.append(k)
+        if k == 2:
+            raise RuntimeError("time-out while waiting for the simulator")
+        return embedded.read(k)
+
+    source = CarlaSource(rig, config=SMALL, bev_camera_to_vehicle=sensor_mounts(rig, SMALL).bev_camera_to_vehicle,
+                         carla_version="0.9.12", frames=3, next_frame=next_frame, settings={"weather": "WetNoon"})
+    assert source.read(1).index == 1 and calls == [0, 1]  # frame 0 ticked on the way (and kept)
+    assert source.read(0, bev=False).bev is None and source.read(0).bev is not None and calls == [0, 1]
+    with pytest.raises(RuntimeError, match="time-out"):
+        source.read(2)
+    with pytest.raises(CarlaCaptureError, match="the session stopped at frame 2: RuntimeError: time-out"):
+        source.read(2)  # at once, without asking the simulator again
+    assert calls == [0, 1, 2]
+    with pytest.raises(CarlaCaptureError, match="frame 5 is not one of its 3 frames"):
+        source.read(5)
+    other = CarlaSource(rig, config=SMALL, bev_camera_to_vehicle=sensor_mounts(rig, SMALL).bev_camera_to_vehicle,
+                        carla_version="0.9.12", frames=4, next_frame=embedded.read, keep=1)
+    other.read(1)
+    with pytest.raises(CarlaCaptureError, match="frame 0 was read before and is gone"):
+        other.read(0)
+    assert source.fingerprint() != other.fingerprint() and source.carla_tags == "0.9.10"
+    assert source.constants_key() == other.constants_key()  # the same rig constants

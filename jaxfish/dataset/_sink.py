@@ -1,0 +1,256 @@
+"""The SynWoodScape layout writer: the one sink of `jaxfish.pipeline.SampleTruth`\\ s.
+
+`LayoutSink.jobs` lists the writes of one sample (each a function returning the paths it wrote),
+so that the builder runs them inline or in a pool of threads; every file is written atomically and
+deterministically (`docs/dataset.md` lists the layout)."""
+
+from __future__ import annotations
+
+import os
+import pickle
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._constants import FAR_DEPTH_M
+from .._errors import ImageError
+from ..groundtruth import SYNWOODSCAPE_CLASSES, SYNWOODSCAPE_PALETTE
+from ..io import (
+    atomic_write_bytes,
+    atomic_write_text,
+    carla_to_tonic,
+    write_boxes_2d_csv,
+    write_boxes_3d_ext_json,
+    write_boxes_3d_pickle,
+    write_color_png,
+    write_depth_exr,
+    write_depth_npy,
+    write_displacements,
+    write_events_npy,
+    write_flo,
+    write_image,
+    write_kitti_flow,
+    write_label_png,
+    write_npz,
+    write_png_with_metadata,
+)
+from ..pipeline import BevTruth, CameraTruth, SampleTruth, SensorRecords
+from ._layout import BEV_CAMERA
+
+RANGE_DEPTH_DEFINITION = {"quantity": "Euclidean range along the pixel's ray (not planar z-depth)", "unit": "m",
+                          "sky_m": FAR_DEPTH_M, "no_ray": 0.0, "instant": "t"}
+"""What the dataset's depth EXRs hold (their `jaxfish.io.DEPTH_ATTRIBUTE` metadata)."""
+
+def synwoodscape_palette_dict() -> dict[str, Any]:
+    """The SynWoodScape palette as metadata: ``{"classes": names, "colors": [[r, g, b], ...]}``
+    (also the content of a ``seg_annotation_info.json``)."""
+    return {"classes": list(SYNWOODSCAPE_CLASSES), "colors": SYNWOODSCAPE_PALETTE.astype(int).tolist()}
+
+
+def boxes_2d_rows(xyxy: np.ndarray, present: np.ndarray, class_id: np.ndarray) -> list[tuple[str, int, int, int, int, int]]:
+    """WoodScape 2D box rows ``(class_name, class_id, x1, y1, x2, y2)`` of the present boxes."""
+    rows = []
+    for b, c, p in zip(np.asarray(xyxy), np.asarray(class_id), np.asarray(present), strict=True):
+        if p and 0 <= int(c) < len(SYNWOODSCAPE_CLASSES):
+            rows.append((SYNWOODSCAPE_CLASSES[int(c)], int(c), *(int(v) for v in b)))
+    return rows  # type: ignore[return-value]
+
+
+def write_camera_files(root: Path, sample: str, cam: CameraTruth, *, motion_threshold_m: float,
+                       png_level: int) -> list[Path]:
+    """One camera's files with stem ``{sample}_{camera}`` (layout in ``docs/dataset.md``):
+    RGB at t and t-1, range (``.npy`` and EXR), z-depth, depth colour map, semantic / instance /
+    motion label and colour PNGs, forward flow (``.flo``, KITTI PNG, colour), DVS events (raw,
+    tonic, colour; not for the BEV), visible and full 2D boxes."""
+    t = cam.truth
+    stem = f"{sample}_{cam.name}"
+    out: list[Path] = []
+    add = out.append
+    h, w = np.asarray(t.images.valid).shape
+    add(write_image(root / "rgb_images" / f"{stem}.png", np.asarray(t.images.rgb), png_level=png_level))
+    add(write_image(root / "previous_images" / f"{stem}_prev.png", np.asarray(t.images_prev.rgb), png_level=png_level))
+    rng = np.asarray(t.images.range_m, np.float32)
+    add(write_depth_npy(root / "depth_maps" / "raw_data" / f"{stem}.npy", rng))
+    add(write_depth_exr(root / "depth_maps" / "exr" / f"{stem}.exr", rng, RANGE_DEPTH_DEFINITION))
+    add(write_depth_npy(root / "depth_maps" / "z_depth" / f"{stem}.npy", np.asarray(cam.z_depth_m)))
+    add(write_image(root / "depth_maps" / "colormap" / f"{stem}.png", cam.depth_rgb, png_level=png_level))
+    pal = synwoodscape_palette_dict()
+    add(write_label_png(root / "semantic_annotations" / "gtLabels" / f"{stem}.png", np.asarray(t.semantic),
+                        png_level=png_level))
+    add(write_color_png(root / "semantic_annotations" / "rgbLabels" / f"{stem}.png", np.asarray(cam.semantic_rgb), pal,
+                        png_level=png_level))
+    add(write_label_png(root / "instance_annotations" / "gtLabels" / f"{stem}.png", np.asarray(t.instances.actor_id),
+                        png_level=png_level))
+    add(write_color_png(root / "instance_annotations" / "rgbLabels" / f"{stem}.png", np.asarray(cam.instance_rgb),
+                        {"colors": "jaxfish.groundtruth.instance_colors(actor_id)", "background": [0, 0, 0]},
+                        png_level=png_level))
+    mot = np.asarray(t.motion).astype(np.uint8) * 255
+    add(write_label_png(root / "motion_annotations" / "gtLabels" / f"{stem}.png", mot, png_level=png_level))
+    add(write_color_png(root / "motion_annotations" / "rgbLabels" / f"{stem}.png", np.repeat(mot[..., None], 3, -1),
+                        {"classes": ["static", "moving"], "colors": [[0, 0, 0], [255, 255, 255]],
+                         "threshold_m": motion_threshold_m}, png_level=png_level))
+    fl, fv = np.asarray(t.flow.flow), np.asarray(t.flow.valid)
+    add(write_flo(root / "optical_flow" / "raw_data" / f"{stem}.flo", np.where(fv[..., None], fl, 0.0)))
+    add(write_kitti_flow(root / "optical_flow" / "kitti" / f"{stem}.png", fl, fv, png_level=png_level))
+    add(write_image(root / "optical_flow" / "color_coded" / f"{stem}.png", np.asarray(cam.flow_rgb), png_level=png_level))
+    if cam.events is not None:
+        ev = cam.events
+        add(write_events_npy(root / "dvs_signals" / "raw_data" / f"{stem}.npy", ev))
+        add(write_npz(root / "dvs_signals" / "tonic" / f"{stem}.npz", events=carla_to_tonic(ev),
+                      time_unit=np.asarray("us"), sensor_size=np.asarray([w, h, 2], np.int64)))
+        add(write_image(root / "dvs_signals" / "color_coded" / f"{stem}.png", cam.events_rgb, png_level=png_level))
+    return out
+
+
+def write_box_files(root: Path, sample: str, cam: CameraTruth, class_id: np.ndarray) -> list[Path]:
+    """A camera's 2D box files: ``box_2d_annotations`` (visible) and ``box_2d_full_annotations``."""
+    t, stem = cam.truth, f"{sample}_{cam.name}"
+    return [write_boxes_2d_csv(root / "box_2d_annotations" / f"{stem}.txt",
+                               boxes_2d_rows(np.asarray(t.boxes_2d.xyxy), np.asarray(t.boxes_2d.present), class_id)),
+            write_boxes_2d_csv(root / "box_2d_full_annotations" / f"{stem}.txt",
+                               boxes_2d_rows(np.asarray(t.boxes_2d_full.xyxy), np.asarray(t.boxes_2d_full.present),
+                                             class_id))]
+
+
+def write_backward_flow(root: Path, sample: str, cam: CameraTruth, *, png_level: int) -> list[Path]:
+    """``optical_flow_backward/{raw_data .flo, color_coded .png}`` (t -> t-1 on the t grid)."""
+    back = cam.truth.flow_backward
+    fl, fv = np.asarray(back.flow), np.asarray(back.valid)
+    stem = f"{sample}_{cam.name}"
+    return [write_flo(root / "optical_flow_backward" / "raw_data" / f"{stem}.flo", np.where(fv[..., None], fl, 0.0)),
+            write_image(root / "optical_flow_backward" / "color_coded" / f"{stem}.png", np.asarray(cam.flow_backward_rgb),
+                        png_level=png_level)]
+
+
+def write_bev_files(root: Path, sample: str, bev: BevTruth, *, png_level: int) -> list[Path]:
+    """The BEV's extra files: ``bev_height/raw_data`` (float32 metres above the ground),
+    ``bev_height/colormap`` and ``bev_occupancy`` (0 free / 255 occupied), each PNG with the BEV
+    scale and axes (`bev_metadata`) in its metadata."""
+    from ..bev import HEIGHT_COLOR_RANGE_M, bev_metadata
+
+    stem = f"{sample}_{BEV_CAMERA}"
+    cam, c2v, a = bev.camera, bev.camera_to_vehicle, bev.pixel_to_vehicle_xy
+    height, occ = np.asarray(bev.height_m, np.float32), np.asarray(bev.occupancy, bool)
+    if height.shape != (cam.height, cam.width) or occ.shape != height.shape:
+        raise ImageError(f"{root}: sample {sample!r}: height {height.shape} / occupancy {occ.shape} do not match "
+                         f"the BEV image {(cam.height, cam.width)}")
+    lo, hi = HEIGHT_COLOR_RANGE_M
+    thr = float(bev.occupancy_min_height_m)
+    return [write_depth_npy(root / "bev_height" / "raw_data" / f"{stem}.npy", height),
+            write_png_with_metadata(root / "bev_height" / "colormap" / f"{stem}.png", bev.height_rgb,
+                                    bev_metadata(cam, c2v, pixel_to_vehicle_xy=a, content="height above the ground (m), viridis",
+                                                 color_range_m=[lo, hi]), png_level=png_level),
+            write_png_with_metadata(root / "bev_occupancy" / f"{stem}.png", occ.astype(np.uint8) * 255,
+                                    bev_metadata(cam, c2v, pixel_to_vehicle_xy=a, content="occupancy: 255 = top surface higher than "
+                                                 f"{thr:g} m above the ground, 0 = free", occupancy_min_height_m=thr),
+                                    png_level=png_level)]
+
+
+def write_sample_files(root: Path, sample: str, truth: SampleTruth, *, motion_threshold_m: float) -> list[Path]:
+    """The per-sample files: ``box_3d_annotations/{sample}.pkl`` (SynWoodScape's format:
+    ``{actor_id: (8, 3) CARLA-world corners}``, every actor), ``box_3d_annotations_ext/{sample}.json``
+    (class and ISO-vehicle corners) and ``distances_traveled/{sample}.txt`` (displacements)."""
+    boxes = truth.motion.boxes
+    cls = np.asarray(boxes.class_id)
+    act = np.asarray(boxes.active)
+    aid = np.asarray(boxes.actor_id)
+    world, veh = truth.corners_world, truth.corners_vehicle
+    names = SYNWOODSCAPE_CLASSES
+    out = [write_boxes_3d_pickle(root / "box_3d_annotations" / f"{sample}.pkl",
+                                 {int(a): world[i] for i, a in enumerate(aid) if act[i]})]
+    ext = {int(a): {"corners_world": world[i], "corners_vehicle": veh[i], "class_id": int(cls[i]),
+                    "class_name": names[int(cls[i])] if 0 <= int(cls[i]) < len(names) else "unknown"}
+           for i, a in enumerate(aid) if act[i]}
+    out.append(write_boxes_3d_ext_json(root / "box_3d_annotations_ext" / f"{sample}.json", ext))
+    disp = np.asarray(truth.displacement_m)
+    out.append(write_displacements(root / "distances_traveled" / f"{sample}.txt", aid[act], cls[act], disp[act],
+                                   threshold_m=motion_threshold_m))
+    return out
+
+
+def _vehicle_lines(ego: Mapping[str, Any], instant: str) -> str:
+    def vec(name, v):
+        return f"{name} " + " ".join(f"{float(x):.9g}" for x in v)
+
+    if instant == "t":
+        tr = ego["transform"]
+        lines = [f"timestamp_s {float(ego['timestamp_s']):.9g}", vec("location_m", tr["location"]),
+                 vec("rotation_deg", tr["rotation"]), vec("velocity_mps", ego["velocity"]),
+                 vec("acceleration_mps2", ego["acceleration"]), vec("angular_velocity_degps", ego["angular_velocity"])]
+    else:
+        tr = ego["transform_prev"]
+        lines = [f"timestamp_s {float(ego['timestamp_prev_s']):.9g}", vec("location_m", tr["location"]),
+                 vec("rotation_deg", tr["rotation"])]
+    header = ("# ego vehicle (CARLA world: x forward, y right, z up, metres; rotation pitch yaw roll, degrees; "
+              "velocity / acceleration in the world frame, angular velocity deg/s)")
+    return header + "\n" + "\n".join(lines) + "\n"
+
+
+def write_sensor_files(root: Path, sample: str, sensors: SensorRecords, where: str) -> list[Path]:
+    """``vehicle_data/{rgb_images, previous_images}/{sample}.txt`` (the ego at t and t-1) and
+    ``lidar_data/{sample}.pkl`` (lidar, semantic lidar, radar in CARLA's raw frames); ``where``
+    names the source of the ego record in errors."""
+    from ..io import CaptureError
+
+    try:
+        t_text, p_text = _vehicle_lines(sensors.ego, "t"), _vehicle_lines(sensors.ego, "t-1")
+    except (KeyError, TypeError, ValueError) as e:
+        raise CaptureError(f"{where}: malformed ({e!r})") from e
+    paths = [atomic_write_text(root / "vehicle_data" / "rgb_images" / f"{sample}.txt", t_text),
+             atomic_write_text(root / "vehicle_data" / "previous_images" / f"{sample}.txt", p_text)]
+    lidar = {"points": np.ascontiguousarray(sensors.lidar, np.float32),
+             "semantic_lidar": np.ascontiguousarray(sensors.semantic_lidar),
+             "radar": np.ascontiguousarray(sensors.radar),
+             "frame": "lidar sensor's local Unreal frame (x forward, y right, z up), metres; radar: m/s, rad, rad, m"}
+    paths.append(atomic_write_bytes(root / "lidar_data" / f"{sample}.pkl", pickle.dumps(lidar, protocol=4)))
+    return paths
+
+
+Job = Callable[[], Sequence[Path]]
+
+
+class LayoutSink:
+    """Writes `SampleTruth`\\ s in SynWoodScape's layout under ``root``: ``png_level`` is the zlib
+    level of every PNG, ``motion_threshold_m`` is recorded in the motion PNGs and the displacement
+    file, ``backward_flow`` also writes ``optical_flow_backward``."""
+
+    def __init__(self, root: str | os.PathLike, *, png_level: int = 1, motion_threshold_m: float = 0.5,
+                 backward_flow: bool = False):
+        self.root = Path(root)
+        self.png_level = int(png_level)
+        self.motion_threshold_m = float(motion_threshold_m)
+        self.backward_flow = bool(backward_flow)
+
+    def camera_jobs(self, sample: str, cam: CameraTruth, class_id: np.ndarray) -> list[Job]:
+        """The writes of one camera's files (and its backward flow)."""
+        root, png, thr = self.root, self.png_level, self.motion_threshold_m
+
+        def files() -> list[Path]:
+            return write_camera_files(root, sample, cam, motion_threshold_m=thr, png_level=png) + \
+                write_box_files(root, sample, cam, class_id)
+
+        jobs: list[Job] = [files]
+        if self.backward_flow:
+            jobs.append(lambda: write_backward_flow(root, sample, cam, png_level=png))
+        return jobs
+
+    def jobs(self, sample: str, truth: SampleTruth, *, ego_where: str = "<ego record>") -> list[Job]:
+        """Every write of a sample, in order: each fisheye camera, the BEV (its camera files and
+        extras), the per-sample files, the sensor files. Each job returns the paths it wrote."""
+        root = self.root
+        jobs: list[Job] = []
+        for cam in truth.cameras:
+            jobs += self.camera_jobs(sample, cam, np.asarray(truth.motion.boxes.class_id))
+        if truth.bev is not None:
+            bev = truth.bev
+            jobs += self.camera_jobs(sample, bev.view, bev.box_class_id)
+            jobs.append(lambda: write_bev_files(root, sample, bev, png_level=self.png_level))
+        jobs.append(lambda: write_sample_files(root, sample, truth, motion_threshold_m=self.motion_threshold_m))
+        jobs.append(lambda: write_sensor_files(root, sample, truth.sensors, ego_where))
+        return jobs
+
+    def write(self, sample: str, truth: SampleTruth) -> list[Path]:
+        """Write every file of a sample inline; returns the paths."""
+        return [p for job in self.jobs(sample, truth) for p in job()]

@@ -1,0 +1,259 @@
+"""One entry point from a `Frame` to every ground truth of its sample: `sample_truth`."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int, UInt8
+
+from .. import bev as jbev
+from .. import groundtruth as gt
+from ..cameras import AbstractCamera, Orthographic
+from ..transforms import Pose
+from ._constants import RigConstants
+from ._events import camera_events
+from ._frame import Frame, Motion, box_slots
+from ._render import depth_to_color, events_color
+
+
+class GroundTruthOptions(eqx.Module):
+    """What `sample_truth` computes (every field static).
+
+    - `backward_flow`: also the backward flow (t -> t-1 on the t grid);
+    - `motion_threshold_m`: an actor moves when its box is displaced by more than this (metres);
+    - `margin_m`, `fallback_m`, `max_candidates`, `surface_samples`: the instance segmentation's
+      and full 2D boxes' settings (`jaxfish.groundtruth.fisheye_ground_truth`);
+    - `batch`: how cameras and frames are mapped (``"auto"``: a loop of per-camera programs on
+      CPU, `jax.vmap` elsewhere; `jaxfish.groundtruth.rig_ground_truth`);
+    - `bev`: compute the BEV top view's ground truth when the frame has one;
+    - `occupancy_min_height_m`: BEV occupancy threshold above the ground (metres).
+    """
+
+    backward_flow: bool = eqx.field(static=True, default=False)
+    motion_threshold_m: float = eqx.field(static=True, default=gt.MOTION_THRESHOLD_M)
+    margin_m: float = eqx.field(static=True, default=gt.BOX_MARGIN_M)
+    fallback_m: float = eqx.field(static=True, default=gt.FALLBACK_DISTANCE_M)
+    max_candidates: int | None = eqx.field(static=True, default=None)
+    surface_samples: int = eqx.field(static=True, default=gt.SURFACE_SAMPLES)
+    batch: str = eqx.field(static=True, default="auto")
+    bev: bool = eqx.field(static=True, default=True)
+    occupancy_min_height_m: float = eqx.field(static=True, default=jbev.OCCUPANCY_MIN_HEIGHT_M)
+
+    def __check_init__(self) -> None:
+        if self.batch not in ("auto", "loop", "vmap"):
+            raise ValueError(f"GroundTruthOptions.batch must be 'auto', 'loop' or 'vmap', got {self.batch!r}")
+
+
+class CameraTruth(eqx.Module):
+    """Every ground truth of one camera of a sample, with the renderings the dataset stores.
+
+    - `name`: the camera's name (``"BEV"`` for the top view);
+    - `camera`: its lens model (float32);
+    - `truth`: `jaxfish.groundtruth.CameraGroundTruth` (images at t-1 and t, range, semantics,
+      instances, motion, flow, 2D boxes, displacements);
+    - `z_depth_m` ``(H, W)``: planar depth along the optical axis (far 1000, no ray 0);
+    - `depth_rgb`, `semantic_rgb`, `instance_rgb`, `flow_rgb` ``(H, W, 3)`` uint8: renderings
+      (`depth_to_color`, SynWoodScape palette, `instance_colors`, `flow_to_color`);
+      `flow_backward_rgb` likewise or None;
+    - `events`: fisheye DVS events (CARLA dtype, t in ns, time order) or None (the BEV);
+      `events_rgb`: their rendering or None.
+    """
+
+    name: str = eqx.field(static=True)
+    camera: AbstractCamera
+    truth: gt.CameraGroundTruth
+    z_depth_m: Float[Array, "H W"]
+    depth_rgb: UInt8[np.ndarray, "H W 3"]
+    semantic_rgb: UInt8[Array, "H W 3"]
+    instance_rgb: UInt8[Array, "H W 3"]
+    flow_rgb: UInt8[Array, "H W 3"]
+    flow_backward_rgb: UInt8[Array, "H W 3"] | None
+    events: np.ndarray | None
+    events_rgb: UInt8[np.ndarray, "H W 3"] | None
+
+
+class BevTruth(eqx.Module):
+    """The BEV top view's ground truth: `view` (`CameraTruth` named ``"BEV"``), its `camera`
+    and `camera_to_vehicle`, `height_m` ``(H, W)`` metres above the ground, `occupancy`
+    ``(H, W)`` (top surface above `occupancy_min_height_m`), `height_rgb` (viridis rendering,
+    `jaxfish.bev.colorize_height`), `pixel_to_vehicle_xy` ``(2, 3)`` (`jaxfish.bev.bev_pixel_to_vehicle`) and
+    `box_class_id` ``(B,)``: the class of each box slot of its ground truth (its 2D boxes' classes)."""
+
+    view: CameraTruth
+    camera: Orthographic
+    camera_to_vehicle: Pose
+    height_m: Float[np.ndarray, "H W"]
+    occupancy: Bool[np.ndarray, "H W"]
+    occupancy_min_height_m: float = eqx.field(static=True)
+    height_rgb: UInt8[np.ndarray, "H W 3"]
+    pixel_to_vehicle_xy: Float[np.ndarray, "2 3"]
+    box_class_id: Int[np.ndarray, " B"]
+
+
+class SampleTruth(eqx.Module):
+    """Every ground truth of one sample (a `Frame` through `sample_truth`).
+
+    - `index`: the frame number; `cameras`: one `CameraTruth` per fisheye camera (the frame's
+      order); `bev`: `BevTruth` or None;
+    - `motion`: the frame's `Motion` (boxes padded as computed);
+    - `displacement_m` ``(B,)``: every box's displacement between t-1 and t (metres);
+    - `corners_world` / `corners_vehicle` ``(B, 8, 3)`` float64: box corners in the CARLA world
+      and in the ISO 8855 vehicle frame at t;
+    - `sensors`: the frame's `SensorRecords`, unchanged.
+    """
+
+    index: int = eqx.field(static=True)
+    cameras: tuple[CameraTruth, ...]
+    bev: BevTruth | None
+    motion: Motion
+    displacement_m: Float[np.ndarray, " B"]
+    corners_world: Float[np.ndarray, "B 8 3"]
+    corners_vehicle: Float[np.ndarray, "B 8 3"]
+    sensors: object
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Every camera's name: the fisheyes, then ``"BEV"`` when present."""
+        return tuple(c.name for c in self.cameras) + (() if self.bev is None else ("BEV",))
+
+    def camera_truths(self) -> tuple[CameraTruth, ...]:
+        """The fisheye `CameraTruth`\\ s, then the BEV's view when present."""
+        return self.cameras + (() if self.bev is None else (self.bev.view,))
+
+
+@functools.cache
+def _jitted() -> dict:
+    return {"colorize": jax.jit(gt.colorize_labels), "instance_colors": jax.jit(gt.instance_colors),
+            "z_depth": jax.jit(gt.range_to_z_depth),
+            "flow_color": jax.jit(gt.flow_to_color, static_argnames="max_radius")}
+
+
+def _camera_truth(name: str, camera, rays, truth: gt.CameraGroundTruth, events: np.ndarray | None,
+                  backward: bool) -> CameraTruth:
+    jit = _jitted()
+    h, w = np.asarray(truth.images.valid).shape
+    rng = np.asarray(truth.images.range_m, np.float32)
+
+    def flow_rgb(field: gt.FlowField):
+        return jit["flow_color"](np.asarray(field.flow, np.float32), valid=np.asarray(field.valid), max_radius=None)
+
+    return CameraTruth(
+        name=name, camera=camera, truth=truth,
+        z_depth_m=jit["z_depth"](camera, truth.images.range_m, rays=rays),
+        depth_rgb=depth_to_color(rng),
+        semantic_rgb=jit["colorize"](np.asarray(truth.semantic)),
+        instance_rgb=jit["instance_colors"](np.asarray(truth.instances.actor_id)),
+        flow_rgb=flow_rgb(truth.flow),
+        flow_backward_rgb=flow_rgb(truth.flow_backward) if backward and truth.flow_backward is not None else None,
+        events=events, events_rgb=None if events is None else events_color(events, width=w, height=h))
+
+
+def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: GroundTruthOptions,
+                    motions: Sequence[Motion]) -> list[list[CameraTruth]]:
+    """Every fisheye camera of every frame, in one `rig_ground_truth` call."""
+    cams = constants.cameras
+    n, c = len(frames), len(cams)
+
+    def stack(instant: str, key: str) -> np.ndarray:  # one copy into an (N, C, F, S, S[, 3]) array
+        parts = [getattr(getattr(cf, instant), key) for f in frames for cf in f.camera_frames]
+        return np.stack(parts).reshape((n, c) + parts[0].shape)
+
+    prev, curr = ({k: stack(inst, k) for k in ("rgb", "depth_m", "semantic")} for inst in ("faces_prev", "faces"))
+    c2v = Pose(np.stack([np.asarray(k.camera_to_vehicle.rotation_matrix, np.float32) for k in cams]),
+               np.stack([np.asarray(k.camera_to_vehicle.translation, np.float32) for k in cams]))
+    per_sample = jax.tree_util.tree_map(
+        lambda *xs: np.stack([np.asarray(x) for x in xs]),
+        *[(m.boxes_prev, m.boxes, m.vehicle_to_world_prev, m.vehicle_to_world) for m in motions])
+    rows = gt.rig_ground_truth(
+        [k.lut for k in cams], [k.camera for k in cams], c2v, _Faces(**prev), _Faces(**curr), *per_sample,
+        rays=[k.rays for k in cams], backward_flow=options.backward_flow, carla_version=frames[0].carla_tags,
+        motion_threshold_m=options.motion_threshold_m, margin_m=options.margin_m, fallback_m=options.fallback_m,
+        max_candidates=options.max_candidates, surface_samples=options.surface_samples, batch=options.batch,
+        stacked=False)
+    return [[_camera_truth(k.name, k.camera, k.rays, truth, camera_events(cf.events, k.event_map), options.backward_flow)
+             for k, cf, truth in zip(cams, f.camera_frames, row, strict=True)]
+            for f, row in zip(frames, rows, strict=True)]
+
+
+class _Faces(eqx.Module):
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    semantic: np.ndarray
+
+
+def bev_truth(frame: Frame, constants: RigConstants, options: GroundTruthOptions) -> BevTruth:
+    """The BEV top view's ground truth of a frame (`jaxfish.groundtruth.view_ground_truth` with the
+    rig's BEV camera and mount), its height map (the frame's, or derived from its depth), occupancy
+    and renderings. Raises ``ValueError`` when the frame or the rig has no BEV."""
+    if frame.bev is None or constants.bev is None:
+        raise ValueError(f"frame {frame.index}: no BEV top view in the {'frame' if frame.bev is None else 'rig constants'}")
+    k, view = constants.bev, frame.bev
+    m = frame.motion
+    truth = gt.view_ground_truth(k.camera, k.camera_to_vehicle, view.images_prev, view.images, m.boxes_prev, m.boxes,
+                                 m.vehicle_to_world_prev, m.vehicle_to_world, carla_version=frame.carla_tags,
+                                 motion_threshold_m=options.motion_threshold_m, backward_flow=options.backward_flow,
+                                 margin_m=options.margin_m, fallback_m=options.fallback_m,
+                                 max_candidates=options.max_candidates, surface_samples=options.surface_samples,
+                                 rays=k.rays)
+    if view.height_m is not None:
+        height = np.asarray(view.height_m, np.float32)
+    else:
+        height = np.asarray(jbev.height_map(k.camera, k.camera_to_vehicle, jnp.asarray(view.images.depth_m, jnp.float32)))
+    thr = float(options.occupancy_min_height_m)
+    occupancy = np.asarray(jbev.occupancy_map(height, min_height_m=thr))
+    return BevTruth(view=_camera_truth("BEV", k.camera, k.rays, truth, None, options.backward_flow), camera=k.camera,
+                    camera_to_vehicle=k.camera_to_vehicle, height_m=height, occupancy=occupancy,
+                    occupancy_min_height_m=thr, height_rgb=np.asarray(jbev.colorize_height(height)),
+                    pixel_to_vehicle_xy=np.asarray(jbev.bev_pixel_to_vehicle(k.camera, k.camera_to_vehicle), np.float64),
+                    box_class_id=np.asarray(m.boxes.class_id))
+
+
+def _check(frames: Sequence[Frame], constants: RigConstants) -> None:
+    if not frames:
+        raise ValueError("sample_truths: no frame")
+    for f in frames:
+        if f.cameras != constants.names:
+            raise ValueError(f"frame {f.index}: cameras {f.cameras} differ from the rig constants' {constants.names}")
+        if f.carla_tags != frames[0].carla_tags:
+            raise ValueError(f"frame {f.index}: tag table {f.carla_tags} differs from frame {frames[0].index}'s "
+                             f"{frames[0].carla_tags} (one batch, one tag table)")
+
+
+def sample_truths(frames: Sequence[Frame], constants: RigConstants,
+                  options: GroundTruthOptions | None = None) -> list[SampleTruth]:
+    """`sample_truth` of several frames, their fisheye cameras computed in one batched call
+    (`jaxfish.groundtruth.rig_ground_truth` over frames and cameras; boxes padded to one size).
+    With ``batch="loop"`` (CPU) each result equals `sample_truth` of its frame alone; with
+    ``batch="vmap"`` values agree to float32 rounding."""
+    options = options or GroundTruthOptions()
+    frames = list(frames)
+    _check(frames, constants)
+    pad = box_slots(max(len(f.motion.actors) for f in frames))
+    motions = [f.motion.padded(pad) for f in frames]
+    rows = _fisheye_truths(frames, constants, options, motions) if constants.cameras else [[] for _ in frames]
+    out = []
+    for f, m, row in zip(frames, motions, rows, strict=True):
+        bev = bev_truth(f, constants, options) if options.bev and f.bev is not None and constants.bev is not None else None
+        first = row[0].truth if row else (None if bev is None else bev.view.truth)
+        if first is None:
+            raise ValueError(f"frame {f.index}: no camera to compute (no fisheye camera and no BEV)")
+        boxes = m.boxes if row else f.motion.boxes
+        world = np.asarray(boxes.corners(), np.float64)
+        vehicle = np.asarray(gt.boxes_in_frame(boxes, m.vehicle_to_world.inverse()), np.float64)
+        out.append(SampleTruth(index=f.index, cameras=tuple(row), bev=bev, motion=m if row else f.motion,
+                               displacement_m=np.asarray(first.displacement_m), corners_world=world,
+                               corners_vehicle=vehicle, sensors=f.sensors))
+    return out
+
+
+def sample_truth(frame: Frame, constants: RigConstants, options: GroundTruthOptions | None = None) -> SampleTruth:
+    """Every ground truth of one frame's sample: each fisheye camera (`CameraTruth`: images,
+    range and z-depth, semantics, instances, motion, flow, events, 2D boxes and their renderings),
+    the BEV top view when the frame has one and ``options.bev`` (`BevTruth`), the 3D box corners
+    and displacements. ``constants``: the rig's `RigConstants` (cameras in the frame's order)."""
+    return sample_truths([frame], constants, options)[0]

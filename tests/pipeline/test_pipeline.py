@@ -1,0 +1,136 @@
+"""The one-way pipeline: sources yield the same `Frame` for the same scene, `sample_truth` is the
+one entry point, each stage of a sample runs once, and the in-memory embedded scene writes the
+bytes of render -> capture -> build."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+import jaxfish.pipeline as jp
+from jaxfish.cli._demo import demo_config, demo_rig
+from jaxfish.dataset import CaptureSource, EmbeddedSource, build_dataset, clear_worker_cache, rig_constants_of
+from tests.dataset.small_capture import FRAMES, SCALE, SEED
+from tests.helpers import tree_bytes
+
+
+def _embedded() -> EmbeddedSource:
+    return EmbeddedSource(demo_rig(SCALE), frames=FRAMES, seed=SEED, config=demo_config(SCALE))
+
+
+def _leaves_equal(a, b) -> None:
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    assert ta == tb
+    for x, y in zip(la, lb, strict=True):
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.dtype == y.dtype and x.shape == y.shape
+        np.testing.assert_array_equal(x, y)
+
+
+def test_the_embedded_scene_in_memory_is_the_frame_its_capture_decodes_to(small_capture):
+    """Array for array (CARLA quantisation, calibrations through their JSON, actor and ego records),
+    the in-memory source gives the pipeline what decoding the rendered capture gives."""
+    captured, embedded = CaptureSource(small_capture), _embedded()
+    assert captured.cameras == embedded.cameras and captured.faces == embedded.faces
+    assert captured.face_size == embedded.face_size and captured.describe() == embedded.describe()
+    for cam in captured.cameras:
+        assert captured.calibration_bytes(cam) == embedded.calibration_bytes(cam)
+    fp_c, fp_e = captured.fingerprint(), embedded.fingerprint()
+    assert {k: v for k, v in fp_c.items() if k.startswith("calibration/")} == \
+        {k: v for k, v in fp_e.items() if k.startswith("calibration/")}
+    a, b = captured.read(1), embedded.read(1)
+    assert a.index == b.index == 1 and a.cameras == b.cameras and a.carla_tags == b.carla_tags
+    _leaves_equal(a.camera_frames, b.camera_frames)
+    _leaves_equal(a.bev, b.bev)
+    assert a.motion.actors == b.motion.actors
+    _leaves_equal(a.motion, b.motion)
+    assert a.sensors.ego == b.sensors.ego
+    _leaves_equal((a.sensors.lidar, a.sensors.semantic_lidar, a.sensors.radar),
+                  (b.sensors.lidar, b.sensors.semantic_lidar, b.sensors.radar))
+    _leaves_equal(rig_constants_of(captured), rig_constants_of(embedded))
+
+
+def test_the_embedded_scene_in_memory_writes_the_bytes_of_render_capture_build(small_capture, reference_build,
+                                                                              tmp_path):
+    """Every sample file is the same; the markers and dataset.json differ only by the source
+    fingerprint (a capture's files against the embedded scene's settings)."""
+    out = tmp_path / "dataset"
+    report = build_dataset(_embedded(), out)
+    assert report.ok and report.built == ["00000", "00001"], report.summary()
+    ref, got = tree_bytes(reference_build[0]), tree_bytes(out)
+    assert sorted(ref) == sorted(got)
+    differ = sorted(k for k in ref if ref[k] != got[k])
+    assert differ == [".done/00000.json", ".done/00001.json", "dataset.json"], differ
+    for rel in differ:
+        a, b = json.loads(ref[rel]), json.loads(got[rel])
+        assert a.pop("source") != b.pop("source")
+        assert a == b
+    again = build_dataset(_embedded(), out)  # resumes from the embedded fingerprint
+    assert again.ok and again.skipped == ["00000", "00001"] and not again.built
+
+
+def test_each_stage_of_a_sample_runs_once(small_capture, reference_build, tmp_path, monkeypatch):
+    """Following the samples through the builder: each frame's actor records are parsed once, the
+    rig's constants are built once per process (LUTs, rays, event maps), the ground truth is one
+    `sample_truths` call per sample and the sink writes every file once."""
+    from jaxfish.dataset import _build
+    from jaxfish.io import CaptureReader
+
+    calls: dict[str, list] = {"actors": [], "ego": [], "constants": [], "truth": [], "files": []}
+    actors, ego = CaptureReader.actors, CaptureReader.ego
+    monkeypatch.setattr(CaptureReader, "actors", lambda self, f: calls["actors"].append(f) or actors(self, f))
+    monkeypatch.setattr(CaptureReader, "ego", lambda self, f: calls["ego"].append(f) or ego(self, f))
+    build_constants, truths = _build.rig_constants, _build.sample_truths
+    monkeypatch.setattr(_build, "rig_constants", lambda *a, **k: calls["constants"].append(1) or build_constants(*a, **k))
+    monkeypatch.setattr(_build, "sample_truths",
+                        lambda frames, *a: calls["truth"].append([f.index for f in frames]) or truths(frames, *a))
+    hashed = _build._sha256
+    monkeypatch.setattr(_build, "_sha256", lambda p: calls["files"].append(p) or hashed(p))
+    clear_worker_cache()
+    out = tmp_path / "dataset"
+    report = build_dataset(small_capture, out)
+    assert report.ok, report.summary()
+    assert sorted(calls["actors"]) == [0, 1] and sorted(calls["ego"]) == [0, 1]
+    assert calls["constants"] == [1] and calls["truth"] == [[0], [1]]
+    listed = {rel for f in (0, 1) for rel in json.loads((out / f".done/0000{f}.json").read_text())["files"]}
+    assert len(calls["files"]) == len(set(calls["files"])) == len(listed)  # every sample file written once
+    assert {p.relative_to(out).as_posix() for p in calls["files"]} == listed
+    assert tree_bytes(out) == tree_bytes(reference_build[0])
+
+
+def test_sample_truth_is_typed_and_batches_equal_single_frames(small_capture):
+    source = CaptureSource(small_capture)
+    constants = rig_constants_of(source)
+    frames = [source.read(f) for f in source.frames]
+    options = jp.GroundTruthOptions(batch="loop")
+    one = [jp.sample_truth(f, constants, options) for f in frames]
+    both = jp.sample_truths(frames, constants, options)
+    for a, b in zip(one, both, strict=True):
+        assert a.names == ("FV", "RV", "MVL", "MVR", "BEV") and a.index == b.index
+        for ca, cb in zip(a.camera_truths(), b.camera_truths(), strict=True):
+            h, w = ca.truth.images.valid.shape
+            assert ca.z_depth_m.shape == (h, w) and ca.semantic_rgb.shape == (h, w, 3)
+            _leaves_equal((ca.truth.semantic, ca.truth.instances.actor_id, ca.truth.flow, ca.depth_rgb),
+                          (cb.truth.semantic, cb.truth.instances.actor_id, cb.truth.flow, cb.depth_rgb))
+        assert a.bev is not None and a.bev.view.events is None and a.bev.height_m.shape == a.bev.occupancy.shape
+        assert a.corners_vehicle.shape == a.corners_world.shape and a.corners_world.dtype == np.float64
+    with pytest.raises(ValueError, match="batch must be"):
+        jp.GroundTruthOptions(batch="threads")
+    with pytest.raises(ValueError, match="cameras"):
+        jp.sample_truth(frames[0], jp.RigConstants(constants.cameras[:2], None, constants.faces, constants.face_size))
+
+
+def test_sources_refuse_what_they_do_not_have(small_capture):
+    from jaxfish import JaxfishError
+    from jaxfish.io import CaptureError
+
+    with pytest.raises(CaptureError, match="frame 5"):
+        _embedded().read(5)
+    with pytest.raises(JaxfishError, match="frames must be a positive integer"):
+        EmbeddedSource(demo_rig(SCALE), frames=0)
+    with pytest.raises(CaptureError, match="frame 9"):
+        CaptureSource(small_capture).read(9)
