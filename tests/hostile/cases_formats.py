@@ -135,7 +135,7 @@ CASES = [
     Case("formats-several-cameras-unnamed", "convert {tmp}/c.yaml --to kb --out {tmp}/o.json",
          setup=_write("c.yaml", _TWO), says=("holds 2 cameras", "::NAME"),
          absent=("{tmp}/o.json",)),
-    Case("formats-several-cameras-named", "convert {tmp}/c.yaml::cam1 --to ucm --out {tmp}/o.json --fov image",
+    Case("formats-several-cameras-named", "convert {tmp}/c.yaml::cam1 --to kb --out {tmp}/o.json",
          setup=_write("c.yaml", _TWO), exit=0, stdout_says=("wrote {tmp}/o.json",)),
     # jaxfish export
     Case("formats-export-name-escapes-folder", "export {tmp}/c.json {tmp}/c2.json --format opencv --out {tmp}/ocv",
