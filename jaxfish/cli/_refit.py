@@ -82,6 +82,7 @@ def _initial_camera(model: str, width: int, height: int, focal: float | None):
         "unified": [f, f, cx, cy, 0.5],
         "extended_unified": [f, f, cx, cy, 0.5, 1.0],
         "double_sphere": [f, f, cx, cy, 0.0, 0.5],
+        "pinhole": [f, f, cx, cy],
         "mei": [2 * f, 2 * f, cx, cy, 1.0, 0.0, 0.0, 0.0, 0.0],
         "opencv": [f, f, cx, cy] + [0.0] * 12,
         "fov": [f, f, cx, cy, 1.0],
@@ -178,12 +179,29 @@ def refit(
     report: Path | None = typer.Option(None, "--report", "-r", help="Report JSON (residuals, covariance, poses)."),
     example: Path | None = typer.Option(None, "--example", is_eager=True, callback=_write_example,
                                         help="Write an example correspondences file to this path and exit."),
+    rig: list[Path] = typer.Option([], "--rig", help="Rig mode: the rig's initial calibration files (repeatable; "
+                                   "any format jaxfish reads, a kalibr camchain gives every camera). The "
+                                   "correspondences name a camera per view; --out is a folder (NAME.json per camera)."),
+    reference: str | None = typer.Option(None, "--reference", help="Rig mode: the camera whose mounting is held "
+                                         "(the gauge; default: the first camera, none with frame vehicle)."),
+    estimate_mountings: bool = typer.Option(False, "--estimate-mountings", help="Rig mode: start every other "
+                                            "camera's mounting from the target views it shares with placed cameras "
+                                            "(kalibr's initialisation) instead of the --rig files' extrinsics."),
 ) -> None:
     """Fit a lens model's intrinsics (and poses) to 2D-3D correspondences; write the calibration and a report.
 
     With --calibration, the model, image size, start values, extrinsic, name and flavor come from
     that file; without it, give --model, --width and --height (and optionally --focal, --name).
+    With --rig, every camera's intrinsics and mounting and the target poses are fitted jointly.
     """
+    if rig or reference is not None or estimate_mountings:
+        from ._refit_rig import refit_rig_command
+
+        others = {"--calibration": calibration is not None, "--model": model is not None, "--width": width is not None,
+                  "--height": height is not None, "--focal": focal is not None}
+        refit_rig_command(correspondences, rig, out, report, reference, fix, loss, loss_scale, fit_pose,
+                          [k for k, v in others.items() if v], estimate_mountings)
+        return
     check_outputs(out=out, report=report)
     model = _model_option(model)
     if not (math.isfinite(loss_scale) and loss_scale > 0):

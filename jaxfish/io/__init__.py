@@ -13,7 +13,6 @@ from ._bev import read_bev_metadata as read_bev_metadata
 from ._bev import write_png_with_metadata as write_png_with_metadata
 from ._calibration_json import calibration_from_dict as calibration_from_dict
 from ._calibration_json import calibration_to_dict as calibration_to_dict
-from ._calibration_json import load_calibration as load_calibration
 from ._calibration_json import load_rig as load_rig
 from ._calibration_json import save_calibration as save_calibration
 from ._calibration_json import save_rig as save_rig
@@ -40,7 +39,6 @@ from ._correspondences import camera_calibration_from_dict as camera_calibration
 from ._correspondences import camera_calibration_to_dict as camera_calibration_to_dict
 from ._correspondences import correspondences_from_dict as correspondences_from_dict
 from ._correspondences import correspondences_to_dict as correspondences_to_dict
-from ._correspondences import load_camera_calibration as load_camera_calibration
 from ._correspondences import load_correspondences as load_correspondences
 from ._correspondences import save_camera_calibration as save_camera_calibration
 from ._correspondences import save_correspondences as save_correspondences
@@ -56,6 +54,18 @@ from ._flow import read_flo as read_flo
 from ._flow import read_kitti_flow as read_kitti_flow
 from ._flow import write_flo as write_flo
 from ._flow import write_kitti_flow as write_kitti_flow
+from ._formats import CALIBRATION_FORMATS as CALIBRATION_FORMATS
+from ._formats import EXPORT_FORMATS as EXPORT_FORMATS
+from ._formats import MODEL_TABLES as MODEL_TABLES
+from ._formats import ModelMapping as ModelMapping
+from ._formats import detect_calibration_format as detect_calibration_format
+from ._formats import export_calibrations as export_calibrations
+from ._formats import format_models as format_models
+from ._formats import holds_exactly as holds_exactly
+from ._formats import load_calibration as load_calibration
+from ._formats import load_camera_calibration as load_camera_calibration
+from ._formats import read_calibration_file as read_calibration_file
+from ._formats import read_calibration_paths as read_calibration_paths
 from ._images import read_image as read_image
 from ._images import read_image_metadata as read_image_metadata
 from ._images import write_image as write_image
@@ -85,3 +95,9 @@ from ._ocamcalib import load_ocamcalib as load_ocamcalib
 from ._ocamcalib import ocamcalib_from_text as ocamcalib_from_text
 from ._ocamcalib import ocamcalib_to_text as ocamcalib_to_text
 from ._ocamcalib import save_ocamcalib as save_ocamcalib
+from ._rig_correspondences import RIG_FRAMES as RIG_FRAMES
+from ._rig_correspondences import RigCorrespondences as RigCorrespondences
+from ._rig_correspondences import load_rig_correspondences as load_rig_correspondences
+from ._rig_correspondences import rig_correspondences_from_dict as rig_correspondences_from_dict
+from ._rig_correspondences import rig_correspondences_to_dict as rig_correspondences_to_dict
+from ._rig_correspondences import save_rig_correspondences as save_rig_correspondences

@@ -66,7 +66,9 @@ MAX_CORRESPONDENCE_VALUE = 1e7
 calibration target, and small enough that squared residuals stay finite."""
 
 
-def _array(value: Any, cols: int | None, source: str, field: str) -> np.ndarray:
+def correspondence_array(value: Any, cols: int | None, source: str, field: str) -> np.ndarray:
+    """A finite float64 array of ``cols``-vectors (or numbers), at most `MAX_CORRESPONDENCE_VALUE` in
+    magnitude; `CorrespondenceError` naming the file and field otherwise."""
     try:
         a = np.asarray(value, dtype=np.float64)
     except OverflowError:  # an integer beyond ~1.8e308
@@ -105,16 +107,19 @@ def correspondences_from_dict(data: Any, *, source: str = "<correspondences>", d
         if not isinstance(view, dict):
             raise CorrespondenceError(f"{source}: field '{where}': expected an object")
         extra = sorted(set(view) - {"name", "points", "pixels", "weights"})
+        if extra == ["camera"]:
+            raise CorrespondenceError(f"{source}: field '{where}.camera': views that name cameras are a rig's "
+                                      "correspondences (jaxfish refit --rig, jaxfish.io.load_rig_correspondences)")
         if extra:
             raise CorrespondenceError(f"{source}: field '{where}.{extra[0]}': unexpected key")
         for key in ("points", "pixels"):
             if key not in view:
                 raise CorrespondenceError(f"{source}: field '{where}.{key}': missing")
-        p = _array(view["points"], 3, source, f"{where}.points")
-        q = _array(view["pixels"], 2, source, f"{where}.pixels")
+        p = correspondence_array(view["points"], 3, source, f"{where}.points")
+        q = correspondence_array(view["pixels"], 2, source, f"{where}.pixels")
         if len(p) != len(q):
             raise CorrespondenceError(f"{source}: field '{where}.pixels': {len(q)} pixels for {len(p)} points")
-        w = _array(view["weights"], None, source, f"{where}.weights") if "weights" in view else np.ones(len(p))
+        w = correspondence_array(view["weights"], None, source, f"{where}.weights") if "weights" in view else np.ones(len(p))
         if len(w) != len(p) or np.any(w < 0):
             raise CorrespondenceError(f"{source}: field '{where}.weights': expected {len(p)} non-negative numbers")
         name = view.get("name", f"view{i}")
@@ -216,7 +221,8 @@ def _numbers(value: Any, n: int) -> bool:
 
 
 def load_camera_calibration(path: str | os.PathLike, *, dtype=None) -> Calibration:
-    """Read a calibration JSON of any lens model (WoodScape ``radial_poly`` files included)."""
+    """Read a jaxfish calibration JSON of any lens model (WoodScape ``radial_poly`` files included).
+    `jaxfish.io.load_camera_calibration` also reads other tools' files."""
     path = Path(path)
     return camera_calibration_from_dict(_read_json(path, CalibrationError), source=str(path), dtype=dtype)
 

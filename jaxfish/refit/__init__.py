@@ -30,3 +30,6 @@ from ._parameters import intrinsics_to_dict as intrinsics_to_dict
 from ._parameters import intrinsics_vector as intrinsics_vector
 from ._parameters import parameter_names as parameter_names
 from ._parameters import with_intrinsics as with_intrinsics
+from ._rig import POSE_COMPONENTS as POSE_COMPONENTS
+from ._rig import RigRefitResult as RigRefitResult
+from ._rig import refit_rig as refit_rig

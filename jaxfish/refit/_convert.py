@@ -138,6 +138,8 @@ def _initial_from(source: AbstractCamera, model: str, uv, valid, top: float, dty
         vec = [fx, fy, cx, cy, 0.5]
     elif model == "extended_unified":
         vec = [fx, fy, cx, cy, 0.5, 1.0]
+    elif model == "pinhole":
+        vec = [fx, fy, cx, cy]
     elif model in ("ocamcalib", "ftheta", "carla_wide_angle"):
         return _initial_radial_polynomial(model, fx, fy, cx, cy, theta, radius, w, h, dtype)
     else:

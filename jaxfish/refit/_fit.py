@@ -41,7 +41,7 @@ def robust_rho(s: Array, loss: str, scale: float | Array) -> Array:
     raise ValueError(f"unknown robust loss {loss!r} (known: {', '.join(LOSSES)})")
 
 
-def _robust_factor(s: Array, code: Array, scale: Array) -> Array:
+def robust_factor(s: Array, code: Array, scale: Array) -> Array:
     """``sqrt(rho(s)/s)`` for the loss ``LOSSES[code]`` (traced: one compile for every loss);
     1 at s = 0, where every loss is quadratic."""
     c2 = scale * scale
@@ -236,7 +236,7 @@ def _residuals(cam, rot, t, corr, loss_code, loss_scale):
     res = uv - corr.pixels
     w = corr.weight
     root_w = jnp.where(w > 0, jnp.sqrt(jnp.where(w > 0, w, 1.0)), 0.0)  # d sqrt(w)/dw is infinite at 0: 0, not NaN
-    factor = _robust_factor(jnp.sum(res * res, axis=-1), loss_code, loss_scale) * root_w
+    factor = robust_factor(jnp.sum(res * res, axis=-1), loss_code, loss_scale) * root_w
     return res * factor[:, None]
 
 
@@ -389,7 +389,7 @@ def refit(
             rays, ok = jit_unproject(camera, corr.pixels)
             view_np, pts_np = np.asarray(corr.view), np.asarray(corr.points)
             rays_np, ok_np = np.asarray(rays), np.asarray(ok) & used
-            est = [_pose_from_rays(pts_np[view_np == i], rays_np[view_np == i], ok_np[view_np == i], dtype)
+            est = [pose_from_rays(pts_np[view_np == i], rays_np[view_np == i], ok_np[view_np == i], dtype)
                    for i in range(v)]
             rot0 = jnp.stack([e.rotation_matrix for e in est]).astype(dtype)
             t0 = jnp.stack([e.translation for e in est]).astype(dtype)
@@ -437,7 +437,7 @@ def estimate_pose(camera: AbstractCamera, points: Float[ArrayLike, "N 3"], pixel
     """
     dtype = intrinsics_vector(camera).dtype
     rays, valid = jit_unproject(camera, jnp.asarray(pixels, dtype))
-    return _pose_from_rays(np.asarray(points), np.asarray(rays), np.asarray(valid), dtype)
+    return pose_from_rays(np.asarray(points), np.asarray(rays), np.asarray(valid), dtype)
 
 
 def _cross_matrices(r: np.ndarray) -> np.ndarray:
@@ -446,7 +446,7 @@ def _cross_matrices(r: np.ndarray) -> np.ndarray:
                      np.stack([-r[:, 1], r[:, 0], z], -1)], -2)
 
 
-def _pose_from_rays(pts: np.ndarray, rays: np.ndarray, keep: np.ndarray, dtype) -> Pose:
+def pose_from_rays(pts: np.ndarray, rays: np.ndarray, keep: np.ndarray, dtype) -> Pose:
     pts = np.asarray(pts, dtype=np.float64)[keep]
     rays = np.asarray(rays, dtype=np.float64)[keep]
     if pts.shape[0] < 4:

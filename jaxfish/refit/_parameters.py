@@ -24,6 +24,7 @@ from ..cameras._double_sphere import DoubleSphere
 from ..cameras._ftheta import FTHETA_POLY_LENGTH, FTheta
 from ..cameras._kannala_brandt import KannalaBrandt
 from ..cameras._ocamcalib import OCAM_INVPOL_LENGTH, OCAM_POL_LENGTH, OCamCalib
+from ..cameras._pinhole import Pinhole
 from ..cameras._unified import ExtendedUnifiedCamera, UnifiedCamera
 
 MODEL_CLASSES: dict[str, type[AbstractCamera]] = {
@@ -32,6 +33,7 @@ MODEL_CLASSES: dict[str, type[AbstractCamera]] = {
     "unified": UnifiedCamera,
     "extended_unified": ExtendedUnifiedCamera,
     "double_sphere": DoubleSphere,
+    "pinhole": Pinhole,
     "mei": MeiCamera,
     "opencv": OpenCVPinhole,
     "fov": FieldOfView,
@@ -48,6 +50,7 @@ PARAMETER_NAMES: dict[str, tuple[str, ...]] = {
     "unified": ("fx", "fy", "cx", "cy", "alpha"),
     "extended_unified": ("fx", "fy", "cx", "cy", "alpha", "beta"),
     "double_sphere": ("fx", "fy", "cx", "cy", "xi", "alpha"),
+    "pinhole": ("fx", "fy", "cx", "cy"),
     "mei": ("fx", "fy", "cx", "cy", "xi", "k1", "k2", "p1", "p2"),
     "opencv": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4"),
     "fov": ("fx", "fy", "cx", "cy", "w"),
@@ -186,6 +189,8 @@ def intrinsics_vector(camera: AbstractCamera) -> Float[Array, " P"]:
         parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy, c.alpha])]
     elif name == "extended_unified":
         parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy, c.alpha, c.beta])]
+    elif name == "pinhole":
+        parts = [jnp.stack([c.fx, c.fy, c.cx, c.cy])]
     elif name == "ocamcalib":
         parts = [jnp.stack([c.xc, c.yc, c.c, c.d, c.e]), c.pol, c.invpol]
     elif name == "ftheta":
@@ -217,6 +222,8 @@ def with_intrinsics(camera: AbstractCamera, vector: Float[Array, " P"]) -> Abstr
     if name == "extended_unified":
         return eqx.tree_at(lambda c: (c.fx, c.fy, c.cx, c.cy, c.alpha, c.beta), camera,
                            tuple(vector[i] for i in range(6)))
+    if name == "pinhole":
+        return eqx.tree_at(lambda c: (c.fx, c.fy, c.cx, c.cy), camera, tuple(vector[i] for i in range(4)))
     if name == "ocamcalib":
         n = 5 + OCAM_POL_LENGTH
         return eqx.tree_at(lambda c: (c.xc, c.yc, c.c, c.d, c.e, c.pol, c.invpol), camera,
