@@ -13,7 +13,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._errors import CalibrationError
 from .._numerics import eps_for, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
 from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
-from ._kannala_brandt import _kb_theta_max, solve_theta_kb, theta_d_of_theta
+from ._kannala_brandt import kb_theta_max, solve_theta_kb, theta_d_of_theta
 
 CARLA_CAMERA_MODELS: tuple[str, ...] = (
     "perspective", "stereographic", "equidistant", "equisolid", "orthographic", "kannala-brandt")
@@ -228,7 +228,7 @@ class CarlaWideAngle(AbstractCamera):
         if m in ("perspective", "orthographic"):
             return jnp.asarray(math.pi / 2 - _EDGE_MARGIN_RAD, dtype)
         if m == "kannala-brandt":
-            return _kb_theta_max(self.k.astype(dtype))
+            return kb_theta_max(self.k.astype(dtype))
         return jnp.asarray(math.pi, dtype)
 
     # ----------------------------------------------------------------------------- model

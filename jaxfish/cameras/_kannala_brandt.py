@@ -33,8 +33,9 @@ def dtheta_d_dtheta(k: Float[Array, "4"], theta: Float[Array, "*batch"]) -> Floa
 
 
 @jax.jit
-def _kb_theta_max(k: Float[Array, "4"]) -> Float[Array, ""]:
-    # Jitted once per dtype: eager calls would otherwise dispatch the bisection loop op by op.
+def kb_theta_max(k: Float[Array, "4"]) -> Float[Array, ""]:
+    """The end of the Kannala-Brandt domain for coefficients ``k`` (radians): where ``theta_d(theta)``
+    stops increasing, less `KB_THETA_MAX_MARGIN_RAD` (jitted once per dtype)."""
     return first_increasing_limit(dtheta_d_dtheta, k, k.dtype, margin=KB_THETA_MAX_MARGIN_RAD)
 
 
@@ -128,7 +129,7 @@ class KannalaBrandt(AbstractCamera):
     def theta_max(self, dtype=None) -> Float[Array, ""]:
         """Largest valid incidence angle (radians), see the class docstring."""
         dtype = resolve_dtype(dtype, self.k)
-        return _kb_theta_max(self.k.astype(dtype))
+        return kb_theta_max(self.k.astype(dtype))
 
     def project(
         self, points: Float[ArrayLike, "*batch 3"]

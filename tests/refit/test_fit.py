@@ -160,7 +160,7 @@ def test_input_errors():
     with pytest.raises(ValueError, match="shape"):
         Correspondences(np.ones((3, 2)), np.ones((3, 2)))
     with pytest.raises(ValueError, match="unknown lens model"):
-        parameter_names("fisheye624")
+        parameter_names("no_such_lens")
 
 
 def test_copies_of_one_correspondence_are_degenerate():
