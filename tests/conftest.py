@@ -47,3 +47,30 @@ def jit_project():
 def jit_unproject():
     """``jax.jit(lambda cam, uv: cam.unproject(uv))``, compiled once per shape for the session."""
     return jax.jit(lambda cam, uv: cam.unproject(uv))
+
+
+MAPPINGS_BUDGET = 30000
+"""Memory mappings of the test process beyond which compiled programs are dropped after a test.
+Every compiled XLA:CPU program keeps memory mappings of its own; a suite that compiles thousands of
+programs in one process would pass the kernel's ``vm.max_map_count`` (65530 by default), and the
+next compilation then fails inside LLVM (an abort or a segmentation fault, not a Python error)."""
+
+
+def _mappings() -> int:
+    try:
+        with open("/proc/self/maps", "rb") as fh:
+            return sum(1 for _ in fh)
+    except OSError:  # not Linux: no such limit to keep under
+        return 0
+
+
+@pytest.fixture(autouse=True)
+def _bounded_compiled_programs():
+    """After a test, drop every compiled program (`jax.clear_caches`) when the process holds more
+    than `MAPPINGS_BUDGET` memory mappings; they are compiled again when used."""
+    yield
+    if _mappings() > MAPPINGS_BUDGET:
+        import gc
+
+        jax.clear_caches()
+        gc.collect()
