@@ -92,8 +92,7 @@ def _capture_items(source: Path, frames: str | None):
 
     src = CaptureSource(source, reuse_decoded=False)
     chosen = _parse_frames(frames, src.frames)
-    if not src.has_bev():
-        src.reader.sensors()
+    if not src.has_bev():  # has_bev names a missing or malformed sensors.json itself
         raise CaptureError(f"{source / 'sensors.json'}: field 'bev' missing (the capture has no BEV camera)")
     constants = rig_constants_of(src)
     options = GroundTruthOptions()

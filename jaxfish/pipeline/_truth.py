@@ -17,7 +17,7 @@ from ..cameras import AbstractCamera, Orthographic
 from ..transforms import Pose
 from ._constants import RigConstants
 from ._events import camera_events
-from ._frame import Frame, Motion, box_slots
+from ._frame import Frame, Motion, SensorRecords, box_slots
 from ._render import depth_to_color, events_color
 
 
@@ -104,7 +104,7 @@ class SampleTruth(eqx.Module):
     - `displacement_m` ``(B,)``: every box's displacement between t-1 and t (metres);
     - `corners_world` / `corners_vehicle` ``(B, 8, 3)`` float64: box corners in the CARLA world
       and in the ISO 8855 vehicle frame at t;
-    - `sensors`: the frame's `SensorRecords`, unchanged.
+    - `sensors`: the frame's `SensorRecords`, unchanged (None when the source read none).
     """
 
     index: int = eqx.field(static=True)
@@ -114,7 +114,7 @@ class SampleTruth(eqx.Module):
     displacement_m: Float[np.ndarray, " B"]
     corners_world: Float[np.ndarray, "B 8 3"]
     corners_vehicle: Float[np.ndarray, "B 8 3"]
-    sensors: object
+    sensors: SensorRecords | None
 
     @property
     def names(self) -> tuple[str, ...]:
