@@ -44,6 +44,13 @@ class GroundTruthOptions(eqx.Module):
     bev: bool = eqx.field(static=True, default=True)
     occupancy_min_height_m: float = eqx.field(static=True, default=jbev.OCCUPANCY_MIN_HEIGHT_M)
 
+    def ground_truth_keywords(self) -> dict:
+        """The keyword arguments of `jaxfish.groundtruth.rig_ground_truth` and
+        `jaxfish.groundtruth.view_ground_truth` these options set."""
+        return {"motion_threshold_m": self.motion_threshold_m, "backward_flow": self.backward_flow,
+                "margin_m": self.margin_m, "fallback_m": self.fallback_m, "max_candidates": self.max_candidates,
+                "surface_samples": self.surface_samples}
+
     def __check_init__(self) -> None:
         if self.batch not in ("auto", "loop", "vmap"):
             raise ValueError(f"GroundTruthOptions.batch must be 'auto', 'loop' or 'vmap', got {self.batch!r}")
@@ -171,10 +178,8 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
         *[(m.boxes_prev, m.boxes, m.vehicle_to_world_prev, m.vehicle_to_world) for m in motions])
     rows = gt.rig_ground_truth(
         [k.lut for k in cams], [k.camera for k in cams], c2v, _Faces(**prev), _Faces(**curr), *per_sample,
-        rays=[k.rays for k in cams], backward_flow=options.backward_flow, carla_version=frames[0].carla_tags,
-        motion_threshold_m=options.motion_threshold_m, margin_m=options.margin_m, fallback_m=options.fallback_m,
-        max_candidates=options.max_candidates, surface_samples=options.surface_samples, batch=options.batch,
-        stacked=False)
+        rays=[k.rays for k in cams], carla_version=frames[0].carla_tags, batch=options.batch, stacked=False,
+        **options.ground_truth_keywords())
     return [[_camera_truth(k.name, k.camera, k.rays, truth, camera_events(cf.events, k.event_map), options.backward_flow)
              for k, cf, truth in zip(cams, f.camera_frames, row, strict=True)]
             for f, row in zip(frames, rows, strict=True)]
@@ -196,10 +201,7 @@ def bev_truth(frame: Frame, constants: RigConstants, options: GroundTruthOptions
     m = frame.motion
     truth = gt.view_ground_truth(k.camera, k.camera_to_vehicle, view.images_prev, view.images, m.boxes_prev, m.boxes,
                                  m.vehicle_to_world_prev, m.vehicle_to_world, carla_version=frame.carla_tags,
-                                 motion_threshold_m=options.motion_threshold_m, backward_flow=options.backward_flow,
-                                 margin_m=options.margin_m, fallback_m=options.fallback_m,
-                                 max_candidates=options.max_candidates, surface_samples=options.surface_samples,
-                                 rays=k.rays)
+                                 rays=k.rays, **options.ground_truth_keywords())
     if view.height_m is not None:
         height = np.asarray(view.height_m, np.float32)
     else:
