@@ -61,6 +61,36 @@ def test_roundtrip_whole_image_float64(real_calibration_path, jit_project, jit_u
     assert float(jnp.max(jnp.abs(uv - grid))) < tol.ROUNDTRIP_PX_F64
 
 
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_fast_theta_solves_real_lenses_and_agrees_with_the_bisection(real_calibration_path, dtype):
+    """The seeded Newton pass alone passes its residual check on the whole domain of a real lens
+    (so full frames never take the slow retry), and agrees with the certain bisection."""
+    from jaxfish.cameras._woodscape import _bisect, _fast_theta, rho_of_theta
+
+    cam = jf.load_calibration(real_calibration_path).camera.astype(dtype)
+    k, theta_max = cam.k, cam.theta_max(dtype)
+    rho = jnp.linspace(0.0, float(rho_of_theta(k, theta_max)), 20001, dtype=dtype)
+    fast = jax.jit(_fast_theta)(k, rho, theta_max)
+    assert bool(jnp.all(fast >= 0)), f"{int(jnp.sum(fast < 0))} radii failed the residual check"
+    slow = jax.jit(_bisect)(k, rho, theta_max)
+    bound = 4e-14 if dtype == jnp.float64 else 2e-6  # radians: a few ulp of pi
+    assert float(jnp.max(jnp.abs(fast - slow))) < bound
+
+
+def test_lens_that_needs_the_retry_still_solves_every_pixel():
+    """A lens whose rho flattens before pi: the seeded Newton pass fails near theta_max, the
+    bisection retry takes over and every in-domain radius round-trips."""
+    from jaxfish.cameras._woodscape import _fast_theta, rho_of_theta, solve_theta
+
+    cam = _camera_with_stationary_point()
+    k, theta_max = cam.k, cam.theta_max()
+    rho = jnp.linspace(0.0, float(rho_of_theta(k, theta_max)), 4001)
+    assert bool(jnp.any(jax.jit(_fast_theta)(k, rho, theta_max) < 0)), "the case under test"
+    theta, converged = jax.jit(solve_theta)(k, rho, theta_max)
+    assert bool(jnp.all(converged))
+    np.testing.assert_allclose(np.asarray(rho_of_theta(k, theta)), np.asarray(rho), rtol=0, atol=1e-9)
+
+
 def test_roundtrip_whole_image_float32(real_calibration_path, jit_project, jit_unproject):
     cam = jf.load_calibration(real_calibration_path).camera.astype(jnp.float32)
     grid = cam.pixel_grid(jnp.float32)
