@@ -390,9 +390,10 @@ class SynWoodScapeDataset:
         if f & {"timestamp_s", "imu", "gnss", "ego"}:
             p = self._path(f"sensor_data/{sample}.json")
             if p.is_file():
-                sensor = _guard(p, "timestamp_s", sample, _json)
+                first = next(x for x in ("timestamp_s", "ego", "imu", "gnss") if x in f)
+                sensor = _guard(p, first, sample, _json)
                 if not isinstance(sensor, dict):
-                    raise _fail(p, "timestamp_s", sample, "expected a JSON object")
+                    raise _fail(p, first, sample, "expected a JSON object")
         if "timestamp_s" in f:
             out["timestamp_s"] = self._timestamp(sample, sensor)
         if "ego" in f:
@@ -455,7 +456,33 @@ class SynWoodScapeDataset:
                 v["camera"] = model
             if "pose" in f:
                 v["pose"] = pose
+        self._check_shapes(s, c, v)
         return CameraSample(**v)
+
+    def _check_shapes(self, s: str, c: str, v: Mapping[str, Any]) -> None:
+        """Every per-pixel array of a camera has the camera's image size (``dataset.json``'s
+        ``image_size_wh``; in the release: the first array read) and its documented rank and dtype."""
+        size = None
+        if self.manifest is not None:
+            wh = self.manifest.get("image_size_wh", {}).get(c)
+            if isinstance(wh, list) and len(wh) == 2:
+                size = (int(wh[1]), int(wh[0]))
+        for field, (kinds, trailing) in _PIXEL_FIELDS.items():
+            a = v.get(field)
+            if a is None:
+                continue
+            stem = f"{s}_{c}"
+            path = self._path(_PIXEL_FILES[field].format(stem=stem))
+            if field == "flow_valid" and not path.is_file():
+                path = self._path(f"optical_flow/kitti/{stem}.png")
+            if a.dtype.kind not in kinds or a.ndim != 2 + len(trailing) or a.shape[2:] != trailing:
+                raise _fail(path, field, s, f"expected {'x'.join(['H', 'W', *map(str, trailing)])} values of kind "
+                                            f"{kinds!r}, got {a.dtype} {a.shape}")
+            if size is None:
+                size = a.shape[:2]
+            elif a.shape[:2] != size:
+                raise _fail(path, field, s, f"image size {a.shape[1]} x {a.shape[0]} differs from the camera's "
+                                            f"{size[1]} x {size[0]}")
 
     def _timestamp(self, s: str, sensor: Mapping[str, Any] | None) -> float:
         if sensor is not None:
@@ -574,6 +601,8 @@ class SynWoodScapeDataset:
             nonlocal raw
             if raw is None:
                 d = _guard(pkl, "lidar", s, _pickle)
+                if isinstance(d, np.ndarray) and d.dtype.names is None:
+                    d = {"points": d}  # a bare (N, 4) array of points
                 if not isinstance(d, Mapping):
                     raise _fail(pkl, "lidar", s, f"expected a dict with 'points', got {type(d).__name__}")
                 raw = dict(d)
@@ -605,6 +634,19 @@ class SynWoodScapeDataset:
                 r = raw_record().get("radar")
                 out["radar"] = None if r is None else _guard(pkl, "radar", s, lambda _: _structured(r))
         return out
+
+
+_PIXEL_FIELDS: dict[str, tuple[str, tuple[int, ...]]] = {
+    "rgb": ("u", (3,)), "rgb_prev": ("u", (3,)), "depth": ("f", ()), "z_depth": ("f", ()), "semantics": ("u", ()),
+    "instances": ("u", ()), "motion": ("b", ()), "flow": ("f", (2,)), "flow_valid": ("b", ()),
+    "flow_occlusion": ("b", ())}
+_PIXEL_FILES = {"rgb": "rgb_images/{stem}.png", "rgb_prev": "previous_images/{stem}_prev.png",
+                "depth": "depth_maps/raw_data/{stem}.npy", "z_depth": "depth_maps/z_depth/{stem}.npy",
+                "semantics": "semantic_annotations/gtLabels/{stem}.png",
+                "instances": "instance_annotations/gtLabels/{stem}.png",
+                "motion": "motion_annotations/gtLabels/{stem}.png", "flow": "optical_flow/raw_data/{stem}.flo",
+                "flow_valid": "optical_flow/valid_mask/{stem}.png",
+                "flow_occlusion": "optical_flow/occlusion_mask/{stem}.png"}
 
 
 def _kitti_valid(path: Path) -> np.ndarray:

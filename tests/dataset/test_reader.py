@@ -4,6 +4,7 @@ pickle, json), a hand-made miniature in SynWoodScape's released layout, the sens
 
 from __future__ import annotations
 
+import io
 import json
 import multiprocessing
 import pickle
@@ -451,10 +452,24 @@ def test_release_sensor_extras_and_sequence_file(release):
 # ----------------------------------------------------------------------------- bad files
 
 
+def npy_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a)
+    return buf.getvalue()
+
+
+def flo_bytes(f: np.ndarray) -> bytes:
+    h, w = f.shape[:2]
+    return np.float32(202021.25).tobytes() + np.asarray([w, h], "<i4").tobytes() + f.astype("<f4").tobytes()
+
+
 @pytest.mark.parametrize(("rel", "content", "field"), [
     ("rgb_images/00000_FV.png", b"not a png", "rgb"),
     ("semantic_annotations/gtLabels/00000_RV.png", None, "semantics"),
     ("depth_maps/raw_data/00000_MVL.npy", b"\x93NUMPY garbage", "depth"),
+    ("depth_maps/raw_data/00000_FV.npy", npy_bytes(np.zeros((3, 3), np.float32)), "depth"),
+    ("depth_maps/raw_data/00000_RV.npy", npy_bytes(np.zeros((H, W), np.int32)), "depth"),
+    ("optical_flow/raw_data/00000_MVL.flo", flo_bytes(np.zeros((H, W + 1, 2), np.float32)), "flow"),
     ("optical_flow/raw_data/00000_FV.flo", b"PIEH", "flow"),
     ("dvs_signals/raw_data/00000_MVR.npy", None, "events"),
     ("box_2d_annotations/00000_FV.txt", b"vehicle,10,1\n", "boxes_2d"),
@@ -476,6 +491,26 @@ def test_bad_files_name_their_path_and_field(release, rel, content, field):
     assert isinstance(err.value, JaxfishError)
     assert str(path) in str(err.value) and f"'{field}'" in str(err.value)
     assert ds[1].id == "00001"  # the other samples still read
+
+
+@pytest.mark.parametrize(("text", "fields", "field"), [
+    ("{", {"timestamp_s"}, "timestamp_s"),
+    ("[]", {"ego"}, "ego"),
+    ('{"timestamp_s": "soon"}', {"timestamp_s"}, "timestamp_s"),
+    ('{"timestamp_s": 1.0, "imu": {"accelerometer_mps2": [0, 0]}}', {"imu"}, "imu"),
+    ('{"timestamp_s": 1.0, "gnss": {"latitude_deg": null}}', {"gnss"}, "gnss"),
+    ('{"timestamp_s": 1.0, "ego": {"vehicle_to_world": [[1, 0], [0, 1]]}}', {"ego"}, "ego"),
+])
+def test_bad_sensor_file_names_its_field(release, text, fields, field):
+    root, _ = release
+    (root / "sensor_data").mkdir()
+    path = root / "sensor_data" / "00000.json"
+    path.write_text(text)
+    with pytest.warns(UserWarning):
+        ds = jd.open(root, fields=fields, cameras=[])
+    with pytest.raises(jd.DatasetReadError) as err:
+        ds[0]
+    assert str(path) in str(err.value) and f"'{field}'" in str(err.value)
 
 
 def test_bad_dataset_level_files(tmp_path, release):
@@ -504,3 +539,16 @@ def test_bad_dataset_level_files(tmp_path, release):
     shutil.copyfile(shared_path("calibration/synwoodscape/MVL.json"), cal)
     with pytest.raises(jd.DatasetReadError, match=r"sequence.json: field 'sequences'"):
         jd.open(root)
+
+
+def test_through_grain(built):
+    """grain (dev group) reads the dataset as a random-access source and batches with `collate`."""
+    grain = pytest.importorskip("grain")
+    ds = jd.open(built, fields={"rgb", "semantics", "lidar"})
+    loader = grain.DataLoader(data_source=ds, sampler=grain.samplers.IndexSampler(len(ds), num_epochs=1, shuffle=False),
+                              operations=[grain.transforms.Batch(2, batch_fn=jd.collate)], worker_count=0)
+    batches = list(loader)
+    assert len(batches) == 1 and batches[0]["id"] == list(ds.samples)
+    np.testing.assert_array_equal(batches[0]["cameras"]["MVL"]["semantics"][1], ds[1].cameras["MVL"].semantics)
+    mapped = grain.MapDataset.source(ds).batch(2, batch_fn=jd.collate)
+    np.testing.assert_array_equal(mapped[0]["lidar"], batches[0]["lidar"])
