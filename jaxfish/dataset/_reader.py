@@ -309,7 +309,7 @@ class SynWoodScapeDataset:
 
     def _view(self, samples: Sequence[str]) -> SynWoodScapeDataset:
         view = object.__new__(SynWoodScapeDataset)
-        view.__dict__.update(self.__getstate__())
+        view.__dict__.update(self.__dict__)  # shares this process's camera models
         view.samples = tuple(samples)
         return view
 
