@@ -72,9 +72,9 @@ class Boxes2D(eqx.Module):
 
 class Boxes3D(eqx.Module):
     """3D boxes of a sample at t, in actor-id order. Corner order: index = 4 ix + 2 iy + iz over the
-    signs (-, +) of the box axes. ``corners_vehicle`` (ISO 8855 vehicle frame) is None where the
-    dataset has no ``box_3d_annotations_ext`` (the release: ``class_id`` -1, ``class_name``
-    ``"unknown"``)."""
+    signs (-, +) of the box axes. Without ``box_3d_annotations_ext`` (the release): ``class_id``
+    -1, ``class_name`` ``"unknown"``, ``corners_vehicle`` (ISO 8855 vehicle frame) computed from
+    the ego pose in ``vehicle_data`` (None without it)."""
 
     actor_id: Int[np.ndarray, " K"]
     class_id: Int[np.ndarray, " K"]
@@ -573,7 +573,17 @@ class SynWoodScapeDataset:
             return Boxes3D(actor_id=np.asarray(keys, np.int64), class_id=np.full(k, -1, np.int64),
                            class_name=("unknown",) * k, corners_vehicle=None, corners_world=world)
 
-        return _guard(self._path(f"box_3d_annotations/{s}.pkl"), "boxes_3d", s, parse_pkl)
+        boxes = _guard(self._path(f"box_3d_annotations/{s}.pkl"), "boxes_3d", s, parse_pkl)
+        ego_path = self._path(f"vehicle_data/rgb_images/{s}.txt")
+        if not ego_path.is_file():
+            return boxes
+        rec = _guard(ego_path, "boxes_3d", s, _vehicle_text)
+        if len(rec.get("location_m", ())) != 3 or len(rec.get("rotation_deg", ())) != 3:
+            return boxes
+        m = vehicle_to_world_matrix(np.asarray(rec["location_m"]), np.asarray(rec["rotation_deg"]))
+        inv = np.linalg.inv(m)
+        return eqx.tree_at(lambda b: b.corners_vehicle, boxes, boxes.corners_world @ inv[:3, :3].T + inv[:3, 3],
+                           is_leaf=lambda x: x is None)
 
     def _bev(self, s: str, semantics: np.ndarray | None) -> BevSample:
         grid = self._calibrations[BEV_CAMERA]
@@ -755,7 +765,8 @@ def open(path: str | os.PathLike, *, fields: Iterable[str] | None = None,  # noq
         all_cams = tuple(c for c in (*FISHEYE_CAMERAS, BEV_CAMERA) if c in present)
         notes += ["released SynWoodScape layout (no dataset.json): depth_maps/raw_data is returned as stored (the "
                   "release does not say whether it is range or z-depth; jaxfish writes range)",
-                  "box_3d_annotations carry no class: Boxes3D.class_id is -1, corners_vehicle is None",
+                  "box_3d_annotations carry no class: Boxes3D.class_id is -1; corners_vehicle is computed from "
+                  "the ego's location_m / rotation_deg in vehicle_data (None without them)",
                   "no z_depth, boxes_2d_full, flow_valid (no KITTI PNG), BEV maps or BEV calibration in the release",
                   "lidar: lidar_data/{id}.pkl points in the lidar's Unreal frame (lidar_frame 'sensor-unreal')"]
     else:

@@ -141,6 +141,16 @@ def test_every_field_equals_its_file(built):
         assert s.imu is None and s.gnss is None  # no sensor_data in this build
 
 
+def test_ego_of_vehicle_data_maps_vehicle_corners_to_world_corners(built):
+    """The ego pose read from vehicle_data (CARLA location / rotation) takes the ext file's
+    vehicle-frame box corners to its world corners (6 decimals in the JSON)."""
+    ds = jd.open(built, fields={"boxes_3d", "ego"}, cameras=[])
+    for s in ds:
+        m, b = s.ego.vehicle_to_world, s.boxes_3d
+        assert len(b.actor_id) > 0
+        np.testing.assert_allclose(b.corners_vehicle @ m[:3, :3].T + m[:3, 3], b.corners_world, atol=1e-4)
+
+
 def test_vehicle_to_world_matrix_matches_the_core():
     from jaxfish.groundtruth import vehicle_to_world_from_carla
 
@@ -383,7 +393,10 @@ def test_release_layout_miniature(release):
         boxes = truth[f"{sid}.boxes"]
         np.testing.assert_array_equal(s.boxes_3d.actor_id, [3, 7])
         np.testing.assert_array_equal(s.boxes_3d.corners_world, np.stack([boxes[3], boxes[7]]))
-        assert s.boxes_3d.corners_vehicle is None and list(s.boxes_3d.class_id) == [-1, -1]
+        assert list(s.boxes_3d.class_id) == [-1, -1]
+        m = jd.vehicle_to_world_matrix([1, 2, 0], [0, 30, 0])  # the miniature's vehicle_data at t
+        np.testing.assert_allclose(s.boxes_3d.corners_vehicle @ m[:3, :3].T + m[:3, 3], s.boxes_3d.corners_world,
+                                   atol=1e-12)
         np.testing.assert_array_equal(s.lidar, truth[f"{sid}.lidar"]["points"])
         assert s.lidar_frame == jd.LIDAR_FRAME_SENSOR and s.semantic_lidar is None and s.radar is None
         assert s.bev is None and s.imu is None and s.gnss is None
@@ -395,7 +408,12 @@ def test_release_layout_miniature(release):
         ds.window(2, 2)
     b = jd.collate([ds[0], ds[2]])
     assert b["cameras"]["FV"]["events_count"].tolist() == [3, 5]
-    assert b["boxes_3d"]["corners_vehicle"] is None
+    assert b["boxes_3d"]["corners_vehicle"].shape == (2, 2, 8, 3)
+    (root / "vehicle_data/rgb_images/00000.txt").write_text("timestamp_s 0.1\n")  # no ego pose
+    with pytest.warns(UserWarning):
+        assert jd.open(root, fields={"boxes_3d"})[0].boxes_3d.corners_vehicle is None
+    with pytest.raises(jd.DatasetReadError, match="00000.txt: field 'ego'"):
+        ds[0]
 
 
 def test_release_sensor_extras_and_sequence_file(release):
