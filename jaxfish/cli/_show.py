@@ -28,6 +28,8 @@ OTHER_BOX_COLOR = (255, 128, 0)
 BOX_2D_COLOR = (255, 255, 0)
 """Outline colour of the 2D boxes (``box_2d_annotations``, visible extent): yellow."""
 EGO_CLASS = 24
+MAX_COORDINATE_M = 1e6
+"""Largest box corner coordinate (metres, vehicle frame) accepted: farther is a corrupt file."""
 
 
 @dataclass(frozen=True)
@@ -88,8 +90,9 @@ def _boxes_3d(path: Path) -> tuple[np.ndarray, np.ndarray]:
         if not ok:
             raise JaxfishError(f"{path}: field 'boxes[{i}].corners_vehicle': expected 8 corners of 3 numbers (metres)")
         a = np.asarray(c, np.float64)
-        if not np.all(np.isfinite(a)):
-            raise JaxfishError(f"{path}: field 'boxes[{i}].corners_vehicle': corners are not finite numbers")
+        if not np.all(np.abs(a) <= MAX_COORDINATE_M):
+            raise JaxfishError(f"{path}: field 'boxes[{i}].corners_vehicle': expected finite coordinates within "
+                               f"{MAX_COORDINATE_M:g} m of the vehicle")
         corners.append(a)
         classes.append(cid)
     return np.asarray(corners, np.float64).reshape(-1, 8, 3), np.asarray(classes, np.int64)
