@@ -116,7 +116,7 @@ def project_points(
 # ------------------------------------------------------------------ rasterising (NumPy, host side)
 def _clip_segments(p0: np.ndarray, p1: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Liang-Barsky clipping of segments ``(N, 2)`` to the image ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``:
-    the clipped ends and which segments keep a part inside."""
+    the clipped ends and which segments keep a part inside (none with a non-finite end)."""
     d = p1 - p0
     lo = np.zeros(len(p0))
     hi = np.ones(len(p0))
@@ -130,8 +130,12 @@ def _clip_segments(p0: np.ndarray, p1: np.ndarray, width: int, height: int) -> t
                 r = np.where(parallel, 0.0, q_num / np.where(parallel, 1.0, den))
             lo = np.where(~parallel & (den < 0), np.maximum(lo, r), lo)
             hi = np.where(~parallel & (den > 0), np.minimum(hi, r), hi)
-    keep &= lo <= hi
-    return p0 + lo[:, None] * d, p0 + hi[:, None] * d, keep
+    keep &= (lo <= hi) & np.all(np.isfinite(p0), axis=-1) & np.all(np.isfinite(p1), axis=-1)
+    # Clamped to the image: the clipped ends lie on it up to rounding, which far ends (1e30 px) make large.
+    box_lo, box_hi = np.array([-0.5, -0.5]), np.array([width - 0.5, height - 0.5])
+    q0 = np.clip(np.nan_to_num(p0 + lo[:, None] * d), box_lo, box_hi)
+    q1 = np.clip(np.nan_to_num(p0 + hi[:, None] * d), box_lo, box_hi)
+    return q0, q1, keep
 
 
 def _nearest(x: np.ndarray) -> np.ndarray:
@@ -164,7 +168,8 @@ def draw_polylines(
     """A copy of ``image`` with the chords ``uv[..., s, :] -> uv[..., s + 1, :]`` where ``drawn``
     (e.g. `BoxEdgePixels`) rasterised in ``color`` (one RGB colour, or one per polyline): every
     pixel whose centre is the rounding of a point on the chord, sampled less than one pixel apart,
-    clipped to the image; ``thickness`` pixels wide (a square brush). NumPy, no anti-aliasing."""
+    clipped to the image (a chord with a non-finite end is skipped); ``thickness`` pixels wide (a
+    square brush). NumPy, no anti-aliasing."""
     out = np.array(image, np.uint8, copy=True)
     h, w = out.shape[:2]
     uv = np.asarray(uv, np.float64)
@@ -200,7 +205,7 @@ def draw_points(
     first, so nearer points cover farther ones."""
     out = np.array(image, np.uint8, copy=True)
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    ok = np.asarray(valid, bool).reshape(-1) & np.all(np.isfinite(uv), axis=-1)
+    ok = np.asarray(valid, bool).reshape(-1) & np.all(np.abs(uv) < 2.0**31, axis=-1)  # finite, and castable
     colors = np.asarray(colors, np.uint8).reshape(-1, 3)
     idx = np.flatnonzero(ok)
     if order is not None:

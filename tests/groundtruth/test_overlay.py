@@ -208,6 +208,9 @@ def test_points_are_drawn_at_their_projected_pixels():
     two = draw_points(np.zeros((4, 4, 3), np.uint8), np.array([[1.0, 1.0], [1.2, 0.9]]), np.array([True, True]),
                       np.array([[10, 10, 10], [20, 20, 20]], np.uint8), order=np.array([1.0, 5.0]))
     assert two[1, 1].tolist() == [10, 10, 10]
+    odd = draw_points(np.zeros((4, 4, 3), np.uint8), np.array([[np.nan, 1.0], [1e30, 1.0], [2.0, 2.0]]), np.ones(3, bool),
+                      np.full((3, 3), 5, np.uint8))
+    assert np.argwhere(odd[..., 0]).tolist() == [[2, 2]]  # non-finite or absurd pixels are skipped
 
 
 def test_rectangles_and_clipping():
@@ -220,3 +223,9 @@ def test_rectangles_and_clipping():
     uv = np.array([[[-1e6, 5.0], [1e6, 5.0]], [[-50.0, -50.0], [-40.0, -60.0]]])
     lines = draw_polylines(np.zeros((10, 12, 3), np.uint8), uv, np.ones((2, 1), bool), (7, 7, 7))
     assert (lines[5, :, 0] == 7).all() and lines[..., 0].sum() == 7 * 12
+    # Ends far away are clipped exactly; at 1e30 pixels (rounding beyond a pixel) or not finite, a chord is
+    # clipped to its row or skipped: never a huge allocation or a crash.
+    uv = np.array([[[-1e12, 2.0], [1e12, 2.0]], [[np.nan, 1.0], [3.0, 1.0]], [[np.inf, 0.0], [-np.inf, 0.0]],
+                   [[-1e30, 6.0], [1e30, 6.0]]])
+    lines = draw_polylines(np.zeros((10, 12, 3), np.uint8), uv, np.ones((4, 1), bool), (7, 7, 7))
+    assert (lines[2, :, 0] == 7).all() and lines[[0, 1, 3, 4, 5, 7, 8, 9], :, 0].sum() == 0
