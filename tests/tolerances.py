@@ -61,3 +61,6 @@ BEV_FLOW_UNIFORM_PX = 1e-3  # top-view flow under pure ego translation vs the un
 # Batched rig ground truth: float32 flow of differently fused programs (pose products at up to 1000 m).
 RIG_FLOW_PX_F32 = 5e-3
 RIG_RANGE_REL_F32 = 1e-5
+# Overlays (jaxfish show): box edges and lidar points drawn into fisheye images.
+OVERLAY_SAMPLE_RAY_RAD = 1e-9  # float64 edge samples: unprojected pixel ray vs the sample's direction
+OVERLAY_DRAWN_PX = 1.0  # every drawn wireframe pixel: the nearest box edge point projects within this

@@ -62,4 +62,14 @@ from ._instances import instance_segmentation as instance_segmentation
 from ._instances import max_box_candidates as max_box_candidates
 from ._instances import motion_segmentation as motion_segmentation
 from ._instances import tile_capacity as tile_capacity
+from ._overlay import BOX_EDGES as BOX_EDGES
+from ._overlay import CHORD_TOLERANCE_PX as CHORD_TOLERANCE_PX
+from ._overlay import SAMPLES_PER_EDGE as SAMPLES_PER_EDGE
+from ._overlay import BoxEdgePixels as BoxEdgePixels
+from ._overlay import ProjectedPoints as ProjectedPoints
+from ._overlay import box_edge_pixels as box_edge_pixels
+from ._overlay import draw_points as draw_points
+from ._overlay import draw_polylines as draw_polylines
+from ._overlay import draw_rectangles as draw_rectangles
+from ._overlay import project_points as project_points
 from ._rig import rig_ground_truth as rig_ground_truth

@@ -27,7 +27,7 @@ def example_commands() -> list[str]:
 
 def test_every_command_has_an_example():
     names = {shlex.split(c)[3] for c in example_commands()}
-    assert names == {"demo", "synth", "build", "bev", "cube2fisheye", "reproject", "refit", "convert"}
+    assert names == {"demo", "synth", "build", "bev", "show", "cube2fisheye", "reproject", "refit", "convert"}
 
 
 def test_the_examples_run_as_written(tmp_path, monkeypatch):
@@ -54,6 +54,7 @@ def test_the_examples_run_as_written(tmp_path, monkeypatch):
     assert "0 built, 1 already complete" in resumed and "1 skipped as already complete" in resumed
     assert "samples/s" not in resumed
     assert (out / "FV.png").is_file() and (out / "FV_pinhole.png").is_file() and (out / "bev" / "scores.json").is_file()
+    assert (out / "show.png").is_file()
     report = json.loads((out / "fit_report.json").read_text())
     assert report["converged"] and report["rms_px"] < 0.35
     fitted = report["parameters"]
