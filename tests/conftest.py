@@ -49,6 +49,27 @@ def jit_unproject():
     return jax.jit(lambda cam, uv: cam.unproject(uv))
 
 
+@pytest.fixture(scope="session")
+def small_capture():
+    """The suite's small capture (`tests.dataset.small_capture`: the demo's settings at scale 0.05,
+    fisheyes 64 x 48, BEV 51 px, 2 frames), rendered once per session."""
+    from tests.dataset.small_capture import small_capture_dir
+
+    return small_capture_dir()
+
+
+@pytest.fixture(scope="session")
+def reference_build(small_capture, tmp_path_factory):
+    """One serial default-options build of `small_capture`: ``(dataset folder, BuildReport)``. Shared
+    by every test that reads a built dataset; tests that modify a dataset copy it first."""
+    from jaxfish.dataset import build_dataset
+
+    out = tmp_path_factory.mktemp("dataset_reference") / "dataset"
+    report = build_dataset(small_capture, out)
+    assert report.ok, report.summary()
+    return out, report
+
+
 MAPPINGS_BUDGET = 30000
 """Memory mappings of the test process beyond which compiled programs are dropped after a test.
 Every compiled XLA:CPU program keeps memory mappings of its own; a suite that compiles thousands of
