@@ -64,3 +64,15 @@ RIG_RANGE_REL_F32 = 1e-5
 # Overlays (jaxfish show): box edges and lidar points drawn into fisheye images.
 OVERLAY_SAMPLE_RAY_RAD = 1e-9  # float64 edge samples: unprojected pixel ray vs the sample's direction
 OVERLAY_DRAWN_PX = 1.0  # every drawn wireframe pixel: the nearest box edge point projects within this
+# Flow masks (valid / occluded) of the cube -> fisheye pipeline vs the embedded scene's exact ray cast at t.
+FLOW_MASK_ORACLE_REL = 1e-3  # the oracle's "seen": nothing hit nearer than the moved point by this relative margin
+FLOW_MASK_ORACLE_AGREEMENT = 0.98  # fraction of pixels whose mask equals the oracle's (resampled edges differ)
+FLOW_OCCLUSION_ORACLE_RECALL = 0.85  # oracle-hidden pixels the pipeline flags occluded
+FLOW_OCCLUSION_ORACLE_PRECISION = 0.9  # pipeline-occluded pixels the oracle finds hidden
+# Sensors in the vehicle frame (dataset sensor_data, lidar_vehicle).
+SENSOR_FRAME_F64 = 1e-9  # conversions and round trips in float64 (metres, rad/s)
+LIDAR_FLOAT32_M = 1e-4  # float32 lidar points mapped back to the raw sensor frame (metres, within 100 m)
+LIDAR_ON_DEPTH_REL = 0.02  # lidar range seen from a fisheye vs the 4 depth-map pixels around its projection
+LIDAR_ON_DEPTH_BRACKETED = 0.7  # fraction within [min, max] of those 4 ranges (+- LIDAR_ON_DEPTH_REL); the rest are
+# hidden from the camera (behind the ego body, a mirror or a nearer object: the lidar sits on the roof)
+LIDAR_IN_FRONT_OF_DEPTH = 0.03  # fraction nearer than every one of the 4 (a point in front of the visible surface)

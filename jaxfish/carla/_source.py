@@ -176,10 +176,26 @@ class CarlaSource:
                 for old in [k for k in self._read if k < self._next - self._keep]:
                     del self._read[old]
         frame = self._read[index]
+        if frame.sensors is not None and frame.sensors.lidar_to_vehicle is None:
+            frame = self._with_mounts(frame)
         if not bev and frame.bev is not None:
             frame = Frame(index=frame.index, carla_tags=frame.carla_tags, cameras=frame.cameras,
                           camera_frames=frame.camera_frames, motion=frame.motion, bev=None, sensors=frame.sensors)
         return frame
+
+    def _with_mounts(self, frame: Frame) -> Frame:
+        """The frame with the lidar and radar mounts its ``sensors.json`` records
+        (`jaxfish.scene.sensor_mounts` of the rig and config) when the frame came without them."""
+        from ..pipeline import sensor_to_vehicle_matrix
+        from ..scene import sensor_mounts
+
+        ct = sensor_mounts(self._rig, self.config).carla_transforms()
+        m = {f"{k}_to_vehicle": sensor_to_vehicle_matrix(ct[k]["location"], ct[k]["rotation"]) for k in ("lidar", "radar")}
+        s = frame.sensors
+        sensors = type(s)(ego=s.ego, lidar=s.lidar, semantic_lidar=s.semantic_lidar, radar=s.radar, imu=s.imu,
+                          gnss=s.gnss, **m)
+        return Frame(index=frame.index, carla_tags=frame.carla_tags, cameras=frame.cameras,
+                     camera_frames=frame.camera_frames, motion=frame.motion, bev=frame.bev, sensors=sensors)
 
     def __repr__(self) -> str:
         return f"CarlaSource({self.where}, frames={len(self.frames)}, face_size={self.face_size})"

@@ -197,7 +197,9 @@ def has_bev(reader) -> bool:
 
 
 _BACKWARD_FLOW_PATTERNS = ("optical_flow_backward/raw_data/{sample}_{camera}.flo",
-                           "optical_flow_backward/color_coded/{sample}_{camera}.png")
+                           "optical_flow_backward/color_coded/{sample}_{camera}.png",
+                           "optical_flow_backward/valid_mask/{sample}_{camera}.png",
+                           "optical_flow_backward/occlusion_mask/{sample}_{camera}.png")
 
 
 def remove_sample_files(out_dir: str | os.PathLike, sample: str) -> int:

@@ -15,9 +15,9 @@ BEV_CAMERA = "BEV"
 """Name of the top-view (bird's-eye view) camera in file names."""
 SAMPLE_DIGITS = 5
 """Digits of a sample id: sample ``k`` is the capture's frame ``k`` (``{k:05d}``)."""
-LAYOUT_VERSION = 2
-"""Version of this layout (bumped on any change of folder, name, dtype or meaning; 2: depth EXR
-added). Completion markers of another version do not count as complete: resuming rebuilds them."""
+LAYOUT_VERSION = 3
+"""Version of this layout (bumped on any change of folder, name, dtype or meaning; 2: depth EXR;
+3: flow masks, ``sensor_data``, lidar / semantic lidar / radar in the vehicle frame). Completion markers of another version do not count as complete: resuming rebuilds them."""
 
 
 def sample_id(frame: int) -> str:
@@ -64,6 +64,12 @@ LAYOUT: tuple[dict[str, Any], ...] = (
        "all", "KITTI flow PNG: (u, v) = (value - 2**15) / 64, channel 2 = valid", "jaxfish"),
     _e("flow_color", "optical_flow/color_coded/{sample}_{camera}.png", "png", "uint8", "(H, W, 3)", "-", "all",
        "Baker et al. colour wheel rendering of the flow"),
+    _e("flow_valid", "optical_flow/valid_mask/{sample}_{camera}.png", "png", "uint8", "(H, W)", "0 / 255", "all",
+       "255 where the t-1 pixel has a ray, its point lands inside the image at t and is seen there "
+       "(not occluded): the flow's validity; 0 elsewhere", "jaxfish"),
+    _e("flow_occlusion", "optical_flow/occlusion_mask/{sample}_{camera}.png", "png", "uint8", "(H, W)", "0 / 255",
+       "all", "255 where the t-1 pixel's point lands inside the image at t but is hidden there by a nearer "
+       "surface (occluded); 0 elsewhere", "jaxfish"),
     _e("events", "dvs_signals/raw_data/{sample}_{camera}.npy", "npy", "[x <u2, y <u2, t <i8, pol ?]", "(N,)",
        "t in nanoseconds (absolute simulation time)", "fisheye",
        "DVS events between t-1 and t on fisheye pixels, time order, CARLA's dtype"),
@@ -89,6 +95,24 @@ LAYOUT: tuple[dict[str, Any], ...] = (
     _e("lidar", "lidar_data/{sample}.pkl", "pickle", "dict of arrays", "{'points': (N, 4) float32, ...}",
        "metres", "sample", "lidar sweep at t: 'points' x, y, z, intensity in the sensor frame (Unreal axes), "
        "'semantic_lidar' and 'radar' CARLA records, 'frame' (words)"),
+    _e("sensor_data", "sensor_data/{sample}.json", "json", "-", "{'sample', 'frame', 'timestamp_s', ...}",
+       "s, m, m/s, m/s^2, rad/s, rad, deg", "sample",
+       "timestamps of t and t-1; ego 'vehicle_to_world' (4 x 4: ISO 8855 vehicle at t -> CARLA world), "
+       "'velocity_mps', 'acceleration_mps2', 'angular_velocity_radps' (ISO vehicle frame at t); 'imu' "
+       "('accelerometer_mps2', 'gyroscope_radps' in the ISO vehicle frame, 'compass_rad') and 'gnss' "
+       "('latitude_deg', 'longitude_deg', 'altitude_m'), null when the capture has none", "jaxfish"),
+    _e("lidar_vehicle", "lidar_vehicle/{sample}.npy", "npy", "float32", "(N, 4)", "metres", "sample",
+       "lidar sweep at t: x, y, z in the ISO 8855 vehicle frame at t, intensity", "jaxfish"),
+    _e("semantic_lidar_vehicle", "semantic_lidar_vehicle/{sample}.npy", "npy",
+       "[x <f4, y <f4, z <f4, cos_inc_angle <f4, object_idx <u4, object_tag <u4]", "(N,)", "metres", "sample",
+       "semantic lidar at t: x, y, z in the ISO 8855 vehicle frame at t; CARLA's cosine of the incidence "
+       "angle, actor id (0 = static) and semantic tag (the capture's table)", "jaxfish"),
+    _e("radar", "radar_data/{sample}.npy", "npy",
+       "[velocity <f4, azimuth <f4, altitude <f4, depth <f4, x <f4, y <f4, z <f4]", "(N,)",
+       "m/s, rad, rad, m, metres", "sample",
+       "radar detections at t: CARLA's fields in the sensor frame (radial velocity, negative = approaching; "
+       "azimuth positive to the right; altitude; depth) and x, y, z of each detection in the ISO 8855 "
+       "vehicle frame at t", "jaxfish"),
     _e("bev_height", "bev_height/raw_data/{sample}_BEV.npy", "npy", "float32", "(H, W)", "metres", "BEV",
        "height above the ground of the surface each BEV pixel sees at t", "jaxfish"),
     _e("bev_height_color", "bev_height/colormap/{sample}_BEV.png", "png", "uint8", "(H, W, 3)", "-", "BEV",
@@ -111,6 +135,9 @@ DATASET_FILES: tuple[dict[str, Any], ...] = (
      "description": "BEV scale and axes (metres per pixel, pixel -> vehicle affine, camera -> vehicle pose)"},
     {"key": "classes", "pattern": "semantic_annotations/seg_annotation_info.json", "format": "json",
      "description": "class names and palette ({'classes': [...], 'colors': [[r, g, b], ...]})"},
+    {"key": "sequences", "pattern": "sequence.json", "format": "json",
+     "description": "sequences of consecutive samples and each sample's neighbours ({'sequences': [{'name', "
+                    "'samples', 'dt_s'}], 'neighbours': {sample: {'previous', 'next'}}})"},
     {"key": "done", "pattern": ".done/{sample}.json", "format": "json",
      "description": "completion marker of a sample (written last): its files and their SHA-256"},
 )

@@ -6,6 +6,7 @@ deterministically (`docs/dataset.md` lists the layout)."""
 
 from __future__ import annotations
 
+import io
 import os
 import pickle
 from collections.abc import Callable, Mapping, Sequence
@@ -36,7 +37,15 @@ from ..io import (
     write_npz,
     write_png_with_metadata,
 )
-from ..pipeline import BevTruth, CameraTruth, SampleTruth, SensorRecords
+from ..pipeline import (
+    RADAR_VEHICLE_DTYPE,
+    SEMANTIC_LIDAR_VEHICLE_DTYPE,
+    BevTruth,
+    CameraTruth,
+    SampleTruth,
+    SensorRecords,
+    SensorTruth,
+)
 from ._layout import BEV_CAMERA
 
 RANGE_DEPTH_DEFINITION = {"quantity": "Euclidean range along the pixel's ray (not planar z-depth)", "unit": "m",
@@ -95,6 +104,7 @@ def write_camera_files(root: Path, sample: str, cam: CameraTruth, *, motion_thre
     add(write_flo(root / "optical_flow" / "raw_data" / f"{stem}.flo", np.where(fv[..., None], fl, 0.0)))
     add(write_kitti_flow(root / "optical_flow" / "kitti" / f"{stem}.png", fl, fv, png_level=png_level))
     add(write_image(root / "optical_flow" / "color_coded" / f"{stem}.png", np.asarray(cam.flow_rgb), png_level=png_level))
+    out += write_flow_masks(root / "optical_flow", stem, t.flow, png_level=png_level)
     if cam.events is not None:
         ev = cam.events
         add(write_events_npy(root / "dvs_signals" / "raw_data" / f"{stem}.npy", ev))
@@ -102,6 +112,17 @@ def write_camera_files(root: Path, sample: str, cam: CameraTruth, *, motion_thre
                       time_unit=np.asarray("us"), sensor_size=np.asarray([w, h, 2], np.int64)))
         add(write_image(root / "dvs_signals" / "color_coded" / f"{stem}.png", cam.events_rgb, png_level=png_level))
     return out
+
+
+def write_flow_masks(folder: Path, stem: str, field, *, png_level: int) -> list[Path]:
+    """A flow field's masks (`jaxfish.groundtruth.FlowField`), uint8 PNGs 0 / 255 on the source
+    grid: ``{folder}/valid_mask/{stem}.png`` (`FlowField.valid`: seen at both instants and inside
+    the target image) and ``{folder}/occlusion_mask/{stem}.png`` (`FlowField.occluded`: inside the
+    target image but hidden there)."""
+    valid = np.asarray(field.valid, bool).astype(np.uint8) * 255
+    occluded = np.asarray(field.occluded, bool).astype(np.uint8) * 255
+    return [write_label_png(folder / "valid_mask" / f"{stem}.png", valid, png_level=png_level),
+            write_label_png(folder / "occlusion_mask" / f"{stem}.png", occluded, png_level=png_level)]
 
 
 def write_box_files(root: Path, sample: str, cam: CameraTruth, class_id: np.ndarray) -> list[Path]:
@@ -115,13 +136,14 @@ def write_box_files(root: Path, sample: str, cam: CameraTruth, class_id: np.ndar
 
 
 def write_backward_flow(root: Path, sample: str, cam: CameraTruth, *, png_level: int) -> list[Path]:
-    """``optical_flow_backward/{raw_data .flo, color_coded .png}`` (t -> t-1 on the t grid)."""
+    """``optical_flow_backward/{raw_data .flo, color_coded .png, valid_mask .png, occlusion_mask .png}``
+    (t -> t-1 on the t grid)."""
     back = cam.truth.flow_backward
     fl, fv = np.asarray(back.flow), np.asarray(back.valid)
     stem = f"{sample}_{cam.name}"
     return [write_flo(root / "optical_flow_backward" / "raw_data" / f"{stem}.flo", np.where(fv[..., None], fl, 0.0)),
             write_image(root / "optical_flow_backward" / "color_coded" / f"{stem}.png", np.asarray(cam.flow_backward_rgb),
-                        png_level=png_level)]
+                        png_level=png_level)] + write_flow_masks(root / "optical_flow_backward", stem, back, png_level=png_level)
 
 
 def write_bev_files(root: Path, sample: str, bev: BevTruth, *, png_level: int) -> list[Path]:
@@ -208,6 +230,55 @@ def write_sensor_files(root: Path, sample: str, sensors: SensorRecords, where: s
     return paths
 
 
+def _npy_bytes(arr: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(arr), allow_pickle=False)
+    return buf.getvalue()
+
+
+def _floats(v) -> list[float]:
+    return [float(x) + 0.0 for x in np.asarray(v, np.float64).reshape(-1)]  # + 0.0: no "-0.0" in the JSON
+
+
+def sensor_data_doc(sample: str, frame: int, sensors: SensorTruth) -> dict[str, Any]:
+    """The content of ``sensor_data/{sample}.json``: timestamps, the ego state (``vehicle_to_world``
+    4 x 4 ISO vehicle at t -> CARLA world; velocity, acceleration, angular velocity in the ISO
+    vehicle frame at t), the IMU (ISO vehicle frame) and the GNSS fix (null when absent)."""
+    ego, imu, gnss = sensors.ego, sensors.imu, sensors.gnss
+    return {
+        "sample": sample, "frame": int(frame), "timestamp_s": float(ego.timestamp_s),
+        "previous_timestamp_s": float(ego.previous_timestamp_s),
+        "ego": {"vehicle_to_world": [_floats(row) for row in np.asarray(ego.vehicle_to_world)],
+                "velocity_mps": _floats(ego.velocity_mps), "acceleration_mps2": _floats(ego.acceleration_mps2),
+                "angular_velocity_radps": _floats(ego.angular_velocity_radps)},
+        "imu": None if imu is None else {"accelerometer_mps2": _floats(imu.accelerometer_mps2),
+                                         "gyroscope_radps": _floats(imu.gyroscope_radps),
+                                         "compass_rad": float(imu.compass_rad)},
+        "gnss": None if gnss is None else {"latitude_deg": float(gnss.latitude_deg),
+                                           "longitude_deg": float(gnss.longitude_deg),
+                                           "altitude_m": float(gnss.altitude_m)},
+    }
+
+
+def write_vehicle_sensor_files(root: Path, sample: str, frame: int, sensors: SensorTruth) -> list[Path]:
+    """The sensors in the ISO 8855 vehicle frame at t (`jaxfish.pipeline.SensorTruth`):
+    ``sensor_data/{sample}.json`` (`sensor_data_doc`), ``lidar_vehicle/{sample}.npy`` (float32
+    ``(N, 4)``), ``semantic_lidar_vehicle/{sample}.npy`` and ``radar_data/{sample}.npy``
+    (structured ``(N,)``)."""
+    from ..io._json import to_json_text
+    from ._options import DatasetError
+
+    path = root / "sensor_data" / f"{sample}.json"
+    text = to_json_text(path, sensor_data_doc(sample, frame, sensors), indent=1, error=DatasetError)
+    return [atomic_write_text(path, text),
+            atomic_write_bytes(root / "lidar_vehicle" / f"{sample}.npy",
+                               _npy_bytes(np.asarray(sensors.lidar_vehicle, np.float32).reshape(-1, 4))),
+            atomic_write_bytes(root / "semantic_lidar_vehicle" / f"{sample}.npy",
+                               _npy_bytes(np.asarray(sensors.semantic_lidar_vehicle, SEMANTIC_LIDAR_VEHICLE_DTYPE))),
+            atomic_write_bytes(root / "radar_data" / f"{sample}.npy",
+                               _npy_bytes(np.asarray(sensors.radar_vehicle, RADAR_VEHICLE_DTYPE)))]
+
+
 Job = Callable[[], Sequence[Path]]
 
 
@@ -238,7 +309,8 @@ class LayoutSink:
 
     def jobs(self, sample: str, truth: SampleTruth, *, ego_where: str = "<ego record>") -> list[Job]:
         """Every write of a sample, in order: each fisheye camera, the BEV (its camera files and
-        extras), the per-sample files, the sensor files. Each job returns the paths it wrote."""
+        extras), the per-sample files, the sensors in the vehicle frame (`write_vehicle_sensor_files`),
+        and last the raw sensor files (`write_sensor_files`). Each job returns the paths it wrote."""
         root = self.root
         jobs: list[Job] = []
         for cam in truth.cameras:
@@ -248,6 +320,8 @@ class LayoutSink:
             jobs += self.camera_jobs(sample, bev.view, bev.box_class_id)
             jobs.append(lambda: write_bev_files(root, sample, bev, png_level=self.png_level))
         jobs.append(lambda: write_sample_files(root, sample, truth, motion_threshold_m=self.motion_threshold_m))
+        if truth.vehicle_sensors is not None:
+            jobs.append(lambda: write_vehicle_sensor_files(root, sample, truth.index, truth.vehicle_sensors))
         jobs.append(lambda: write_sensor_files(root, sample, truth.sensors, ego_where))
         return jobs
 

@@ -70,6 +70,30 @@ def as_source(source) -> FrameSource:
     return source
 
 
+def sensor_mount_matrices(sensors: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
+    """``lidar_to_vehicle`` and ``radar_to_vehicle`` (`jaxfish.pipeline.SensorRecords`) of a
+    ``sensors.json`` document from each sensor's ``carla_transform``; a sensor without one maps to
+    None. A malformed mount raises `jaxfish.io.CaptureError` naming ``where`` and the field."""
+    from ..io import CaptureError
+    from ..pipeline import sensor_to_vehicle_matrix
+
+    out = {}
+    for name in ("lidar", "radar"):
+        entry = sensors.get(name) if isinstance(sensors, Mapping) else None
+        ct = entry.get("carla_transform") if isinstance(entry, Mapping) else None
+        if ct is None:
+            out[f"{name}_to_vehicle"] = None
+            continue
+        try:
+            loc, rot = np.asarray(ct["location"], np.float64), np.asarray(ct["rotation"], np.float64)
+            if loc.shape != (3,) or rot.shape != (3,) or not (np.all(np.isfinite(loc)) and np.all(np.isfinite(rot))):
+                raise ValueError("location and rotation must be 3 finite numbers each")
+        except (KeyError, TypeError, ValueError) as e:
+            raise CaptureError(f"{where}: {name}.carla_transform: malformed ({e})") from e
+        out[f"{name}_to_vehicle"] = sensor_to_vehicle_matrix(loc.tolist(), rot.tolist())
+    return out
+
+
 def file_key(path: Path) -> str:
     """Content hash of a file (an empty string when missing)."""
     return _sha(path.read_bytes()) if path.is_file() else ""
@@ -236,7 +260,8 @@ class CaptureSource:
             records = SensorRecords(ego=ego, lidar=np.ascontiguousarray(reader.lidar(index), np.float32),
                                     semantic_lidar=np.ascontiguousarray(reader.semantic_lidar(index)),
                                     radar=np.ascontiguousarray(reader.radar(index)), imu=reader.imu(index),
-                                    gnss=reader.gnss(index))
+                                    gnss=reader.gnss(index),
+                                    **sensor_mount_matrices(reader.sensors(), f"{reader.root / 'sensors.json'}"))
         return Frame(index=int(index), carla_tags=self.carla_tags, cameras=tuple(names), camera_frames=camera_frames,
                      motion=motion, bev=view, sensors=records)
 
@@ -424,7 +449,9 @@ class EmbeddedSource:
         sensors = SensorRecords(ego=ego, lidar=np.ascontiguousarray(np.asarray(lidar, np.float32)),
                                 semantic_lidar=np.ascontiguousarray(np.asarray(sem).astype(SEMANTIC_LIDAR_DTYPE)),
                                 radar=np.ascontiguousarray(np.asarray(radar).astype(RADAR_DTYPE)),
-                                imu=_json_copy(dict(simulate_imu(street))), gnss=_json_copy(dict(simulate_gnss(street))))
+                                imu=_json_copy(dict(simulate_imu(street))), gnss=_json_copy(dict(simulate_gnss(street))),
+                                **sensor_mount_matrices(_json_copy({k: {"carla_transform": v} for k, v in
+                                                                    mounts.carla_transforms().items()}), self.where))
         return Frame(index=int(index), carla_tags=self.carla_tags, cameras=tuple(self.cameras),
                      camera_frames=tuple(camera_frames), motion=motion_from_records(actors, ego), bev=view,
                      sensors=sensors)

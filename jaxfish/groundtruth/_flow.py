@@ -34,6 +34,9 @@ class FlowField(eqx.Module):
     - `valid`: the point projects inside the target image *and* is visible there (not occluded;
       always True when no target range map was given);
     - `in_image`: the source pixel has a ray and the moved point projects inside the target image;
+    - `occluded` (a property, computed from the fields): `in_image` but hidden at the target (a
+      nearer surface covers it there): exactly ``in_image & ~valid`` (never True when no target
+      range map was given);
     - `target_uv` ``(H, W, 2)``: the target pixel position, `target_range_m` its predicted range.
     """
 
@@ -42,6 +45,12 @@ class FlowField(eqx.Module):
     in_image: Bool[Array, "*batch H W"]
     target_uv: Float[Array, "*batch H W 2"]
     target_range_m: Float[Array, "*batch H W"]
+
+    @property
+    def occluded(self) -> Bool[Array, "*batch H W"]:
+        """The occlusion mask: the point projects inside the target image but is hidden there
+        (``in_image & ~valid``). A property, not a field: the jitted flow programs are unchanged."""
+        return self.in_image & ~self.valid
 
 
 def vehicle_to_world_from_carla(location: Float[ArrayLike, "*batch 3"], rotation: Float[ArrayLike, "*batch 3"], *, dtype=None) -> Pose:

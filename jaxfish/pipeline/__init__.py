@@ -32,6 +32,16 @@ from ._maps import camera_maps as camera_maps
 from ._render import DEPTH_COLOR_RANGE_M as DEPTH_COLOR_RANGE_M
 from ._render import depth_to_color as depth_to_color
 from ._render import events_color as events_color
+from ._sensors import RADAR_VEHICLE_DTYPE as RADAR_VEHICLE_DTYPE
+from ._sensors import SEMANTIC_LIDAR_VEHICLE_DTYPE as SEMANTIC_LIDAR_VEHICLE_DTYPE
+from ._sensors import EgoState as EgoState
+from ._sensors import GnssFix as GnssFix
+from ._sensors import ImuReading as ImuReading
+from ._sensors import SensorTruth as SensorTruth
+from ._sensors import radar_points_local as radar_points_local
+from ._sensors import sensor_to_vehicle_matrix as sensor_to_vehicle_matrix
+from ._sensors import sensor_truth as sensor_truth
+from ._sensors import vehicle_to_world_matrix as vehicle_to_world_matrix
 from ._truth import BevTruth as BevTruth
 from ._truth import CameraTruth as CameraTruth
 from ._truth import GroundTruthOptions as GroundTruthOptions

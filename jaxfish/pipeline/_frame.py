@@ -120,7 +120,11 @@ class SensorRecords(eqx.Module):
     - `ego`: the ego record (``ego.json``: timestamps, transforms at t-1 and t, velocity,
       acceleration, angular velocity; CARLA world units);
     - `lidar` ``(N, 4)`` float32 ``x, y, z, intensity`` (sensor frame, Unreal axes);
-    - `semantic_lidar`, `radar`: CARLA's raw record dtypes; `imu`, `gnss`: readings at t.
+    - `semantic_lidar`, `radar`: CARLA's raw record dtypes; `imu`, `gnss`: readings at t;
+    - `lidar_to_vehicle`, `radar_to_vehicle` ``(4, 4)`` float64: the lidar's (also the semantic
+      lidar's) and the radar's local Unreal frame -> ISO 8855 vehicle frame
+      (`jaxfish.pipeline.sensor_to_vehicle_matrix` of the sensor's CARLA mount), or None when the
+      source does not know the mount (then `jaxfish.pipeline.sensor_truth` refuses its points).
     """
 
     ego: dict[str, Any] = eqx.field(static=True)
@@ -129,6 +133,8 @@ class SensorRecords(eqx.Module):
     radar: np.ndarray
     imu: dict[str, Any] = eqx.field(static=True)
     gnss: dict[str, Any] = eqx.field(static=True)
+    lidar_to_vehicle: Float[np.ndarray, "4 4"] | None = None
+    radar_to_vehicle: Float[np.ndarray, "4 4"] | None = None
 
 
 class Frame(eqx.Module):

@@ -19,6 +19,7 @@ from ._constants import RigConstants
 from ._events import camera_events
 from ._frame import Frame, Motion, SensorRecords, box_slots
 from ._render import depth_to_color, events_color
+from ._sensors import SensorTruth, sensor_truth
 
 
 class GroundTruthOptions(eqx.Module):
@@ -111,7 +112,9 @@ class SampleTruth(eqx.Module):
     - `displacement_m` ``(B,)``: every box's displacement between t-1 and t (metres);
     - `corners_world` / `corners_vehicle` ``(B, 8, 3)`` float64: box corners in the CARLA world
       and in the ISO 8855 vehicle frame at t;
-    - `sensors`: the frame's `SensorRecords`, unchanged (None when the source read none).
+    - `sensors`: the frame's `SensorRecords`, unchanged (None when the source read none);
+    - `vehicle_sensors`: the same sensors in the ISO 8855 vehicle frame at t (`SensorTruth`:
+      ego state, IMU, GNSS, lidar, semantic lidar, radar; `sensor_truth`), None with `sensors`.
     """
 
     index: int = eqx.field(static=True)
@@ -122,6 +125,7 @@ class SampleTruth(eqx.Module):
     corners_world: Float[np.ndarray, "B 8 3"]
     corners_vehicle: Float[np.ndarray, "B 8 3"]
     sensors: SensorRecords | None
+    vehicle_sensors: SensorTruth | None = None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -249,8 +253,17 @@ def sample_truths(frames: Sequence[Frame], constants: RigConstants,
         vehicle = np.asarray(gt.boxes_in_frame(boxes, m.vehicle_to_world.inverse()), np.float64)
         out.append(SampleTruth(index=f.index, cameras=tuple(row), bev=bev, motion=m if row else f.motion,
                                displacement_m=np.asarray(first.displacement_m), corners_world=world,
-                               corners_vehicle=vehicle, sensors=f.sensors))
+                               corners_vehicle=vehicle, sensors=f.sensors, vehicle_sensors=_vehicle_sensors(f)))
     return out
+
+
+def _vehicle_sensors(frame: Frame) -> SensorTruth | None:
+    if frame.sensors is None:
+        return None
+    try:
+        return sensor_truth(frame.sensors)
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"frame {frame.index}: sensor records: {e}") from e
 
 
 def sample_truth(frame: Frame, constants: RigConstants, options: GroundTruthOptions | None = None) -> SampleTruth:

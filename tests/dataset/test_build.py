@@ -107,7 +107,8 @@ def test_every_file_is_there_and_reads_back_from_the_layout_alone(reference_buil
                     assert data["points"].dtype == np.float32 and data["points"].shape[1] == 4
     assert seen == 2 * len(sample_files("00000"))
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and p.parts[-2] != ".done"
-                  and not any(p.match(x) for x in ("dataset.json", "calibration_data/*", "*/seg_annotation_info.json"))
+                  and not any(p.match(x) for x in ("dataset.json", "sequence.json", "calibration_data/*",
+                                                "*/seg_annotation_info.json"))
                   ) == sorted(sample_files("00000") + sample_files("00001"))
     assert len({e["key"] for e in LAYOUT}) == len(LAYOUT)
     info = json.loads((out / "semantic_annotations/seg_annotation_info.json").read_text())
