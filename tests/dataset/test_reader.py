@@ -77,14 +77,17 @@ def test_every_field_equals_its_file(built):
         assert s.id == sid
         veh = dict(line.split(maxsplit=1) for line in (built / f"vehicle_data/rgb_images/{sid}.txt").read_text()
                    .splitlines() if not line.startswith("#"))
-        assert s.timestamp_s == float(veh["timestamp_s"])
+        assert s.timestamp_s == pytest.approx(float(veh["timestamp_s"]), abs=1e-9)  # the text file rounds
         prev = dict(line.split(maxsplit=1) for line in (built / f"vehicle_data/previous_images/{sid}.txt").read_text()
                     .splitlines() if not line.startswith("#"))
-        assert s.ego.previous_timestamp_s == float(prev["timestamp_s"])
-        np.testing.assert_array_equal(s.ego.velocity_mps, np.fromstring(veh["velocity_mps"], sep=" "))
-        np.testing.assert_allclose(s.ego.angular_velocity_radps,
-                                   np.deg2rad(np.fromstring(veh["angular_velocity_degps"], sep=" ")))
-        np.testing.assert_array_equal(s.ego.vehicle_to_world[:3, 3], np.fromstring(veh["location_m"], sep=" "))
+        assert s.ego.previous_timestamp_s == pytest.approx(float(prev["timestamp_s"]), abs=1e-9)
+        # The builder writes the ego state in the ISO vehicle frame (sensor_data); vehicle_data keeps CARLA's.
+        sensor = json.loads((built / f"sensor_data/{sid}.json").read_text())
+        assert s.timestamp_s == sensor["timestamp_s"]
+        for key in ("vehicle_to_world", "velocity_mps", "acceleration_mps2", "angular_velocity_radps"):
+            np.testing.assert_array_equal(getattr(s.ego, key), np.asarray(sensor["ego"][key]))
+        np.testing.assert_allclose(s.ego.vehicle_to_world[:3, 3], np.fromstring(veh["location_m"], sep=" "), rtol=1e-6)
+        np.testing.assert_array_equal(s.lidar, np.load(built / f"lidar_vehicle/{sid}.npy"))
         for cam in ds.cameras:
             c = s.cameras[cam]
             stem = f"{sid}_{cam}"
@@ -98,7 +101,9 @@ def test_every_field_equals_its_file(built):
             np.testing.assert_array_equal(c.motion, oiio_read(built / f"motion_annotations/gtLabels/{stem}.png")[..., 0] == 255)
             np.testing.assert_array_equal(c.flow, flo_read(built / f"optical_flow/raw_data/{stem}.flo"))
             np.testing.assert_array_equal(c.flow_valid, oiio_read(built / f"optical_flow/kitti/{stem}.png")[..., 2] > 0)
-            assert c.flow_occlusion is None  # no optical_flow/occlusion_mask in this build
+            np.testing.assert_array_equal(c.flow_valid, oiio_read(built / f"optical_flow/valid_mask/{stem}.png")[..., 0] == 255)
+            np.testing.assert_array_equal(c.flow_occlusion,
+                                          oiio_read(built / f"optical_flow/occlusion_mask/{stem}.png")[..., 0] == 255)
             if cam == "BEV":
                 assert c.events is None
                 cam_model, pose = c.camera, c.pose
@@ -130,15 +135,16 @@ def test_every_field_equals_its_file(built):
         np.testing.assert_array_equal(s.bev.semantics, s.cameras["BEV"].semantics)
         assert s.bev.metres_per_pixel == bev_cal["metres_per_pixel"]
         np.testing.assert_array_equal(s.bev.pixel_to_vehicle_xy, bev_cal["pixel_to_vehicle_xy"])
-        with open(built / f"lidar_data/{sid}.pkl", "rb") as fh:
-            lidar = pickle.load(fh)
-        np.testing.assert_array_equal(s.lidar, lidar["points"])
-        assert s.lidar_frame == jd.LIDAR_FRAME_SENSOR
+        # The builder writes every sensor in the ISO vehicle frame beside the raw pickle; the reader takes those.
+        np.testing.assert_array_equal(s.lidar, np.load(built / f"lidar_vehicle/{sid}.npy"))
+        assert s.lidar_frame == jd.LIDAR_FRAME_VEHICLE
+        semantic = np.load(built / f"semantic_lidar_vehicle/{sid}.npy")
         assert s.semantic_lidar.dtype == jd.SEMANTIC_LIDAR_DTYPE
-        for new, old in zip(jd.SEMANTIC_LIDAR_DTYPE.names, lidar["semantic_lidar"].dtype.names, strict=True):
-            np.testing.assert_array_equal(s.semantic_lidar[new], lidar["semantic_lidar"][old])
-        np.testing.assert_array_equal(s.radar, lidar["radar"])
-        assert s.imu is None and s.gnss is None  # no sensor_data in this build
+        for name in jd.SEMANTIC_LIDAR_DTYPE.names:
+            np.testing.assert_array_equal(s.semantic_lidar[name], semantic[name])
+        np.testing.assert_array_equal(s.radar, np.load(built / f"radar_data/{sid}.npy"))
+        for record, key in ((s.imu, "imu"), (s.gnss, "gnss")):
+            assert (record is None) == (sensor[key] is None)
 
 
 def test_ego_of_vehicle_data_maps_vehicle_corners_to_world_corners(built):
@@ -208,14 +214,22 @@ def test_fields_selection_reads_nothing_else(built, monkeypatch):
     ds = jd.open(built, fields={"lidar"}, cameras=[])
     opened.clear()
     s = ds[0]
-    assert opened == [f"lidar_data/{sid}.pkl"] and s.cameras == {}
+    assert opened == [f"lidar_vehicle/{sid}.npy"] and s.cameras == {}
 
 
-def test_window_without_sequence_file(built):
+def test_window_with_and_without_sequence_file(built, tmp_path):
     ds = jd.open(built, fields={"timestamp_s"}, cameras=[])
     w = ds.window(0, 2)
     assert [s.id for s in w] == list(ds.samples)
     assert w[1].timestamp_s > w[0].timestamp_s
+    with pytest.raises(jd.DatasetReadError, match="crosses the end of sequence 'seq_00000'"):
+        ds.window(1, 2)
+    # Without sequence.json (a build by an older jaxfish): consecutive frame numbers.
+    older = tmp_path / "dataset"
+    shutil.copytree(built, older)
+    (older / "sequence.json").unlink()
+    ds = jd.open(older, fields={"timestamp_s"}, cameras=[])
+    assert [s.id for s in ds.window(0, 2)] == list(ds.samples)
     with pytest.raises(jd.DatasetReadError, match="end of the dataset"):
         ds.window(1, 2)
     with pytest.raises(ValueError):
@@ -292,7 +306,8 @@ def test_collate_stacks_cameras_and_pads_ragged_fields(built):
         np.testing.assert_array_equal(b["lidar"][k, :m], s.lidar)
         assert np.all(b["lidar"][k, m:] == jd.PAD_FLOAT)
         assert b["boxes_3d"]["count"][k] == len(s.boxes_3d.actor_id)
-    assert b["cameras"]["BEV"]["events"] is None and b["imu"] is None
+    assert b["cameras"]["BEV"]["events"] is None
+    assert b["imu"]["accelerometer_mps2"].shape == (len(samples), 3)
     assert b["bev"]["height"].shape[0] == 2 and b["ego"]["vehicle_to_world"].shape == (2, 4, 4)
     with pytest.raises(ValueError, match="no samples"):
         jd.collate([])
