@@ -15,8 +15,10 @@ same deflate implementation.
 - 8/16-bit grey, grey + alpha, RGB or RGBA, not interlaced, no ``tRNS``, every row filtered None or
   Up: inflate (ISA-L or zlib) and a running sum of the rows in uint8 (wrapping modulo 256, which is
   the Up filter's inverse);
-- the same kinds with other filters or Adam7 interlacing: ``pyspng`` (libspng) where it imports;
-- anything else (palettes, 1/2/4-bit grey, ``tRNS``, or no pyspng): OpenImageIO.
+- the same kinds at 8 bits with other filters or Adam7 interlacing: ``pyspng`` (libspng) where it
+  imports;
+- anything else (16 bits with other filters, palettes, 1/2/4-bit grey, ``tRNS``, or no pyspng):
+  OpenImageIO.
 
 Malformed files raise `ImageError` naming the file and the chunk or field.
 """
@@ -292,7 +294,7 @@ def decode_png(data: bytes, where: str = "PNG", *, fallback=None) -> np.ndarray:
             if hd.bit_depth == 16:
                 out = out.view(">u2").astype(np.uint16)
             return out.reshape(hd.height, hd.width, channels)
-    if _pyspng is not None:
+    if _pyspng is not None and hd.bit_depth == 8:  # pyspng gives 16-bit grey/RGB an alpha channel
         try:
             out = _pyspng.load(data)
         except Exception as e:  # libspng's message, e.g. "IDAT stream error"
