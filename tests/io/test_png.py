@@ -159,7 +159,7 @@ def test_zlib_fallback_writes_the_same_pixels(tmp_path, monkeypatch):
     assert _png.deflate_name().startswith("zlib")
     path = write_image(tmp_path / "z.png", a)
     assert np.array_equal(read_oiio(path), a) and np.array_equal(read_image(path), a)
-    assert path.read_bytes() != with_isal or _png._isal_zlib is None
+    assert path.read_bytes() != with_isal  # another deflate implementation: other bytes, same pixels
 
 
 # --------------------------------------------------------------------- metadata
