@@ -60,14 +60,17 @@ the tonic ``.npz`` zip entries carry the fixed 1980-01-01 stamp of ``zipfile.Zip
 # ------------------------------------------------------------------ environment and hashes
 def environment() -> dict[str, object]:
     """What the bytes of a build depend on besides jaxfish's code: Python, jax/jaxlib, numpy and
-    OpenImageIO versions (the PNG/EXR encoders), the JAX backend and configuration (``jax_enable_x64``
-    changes the bytes: the test suite enables it, the CLI does not), ``XLA_FLAGS``, the machine
+    OpenImageIO versions (the EXR encoder), the PNG deflate implementation and version
+    (`jaxfish.io._png.deflate_name`: ISA-L, or zlib where ``isal`` is missing), the JAX backend and
+    configuration (``jax_enable_x64`` changes the bytes: the test suite enables it, the CLI does not), ``XLA_FLAGS``, the machine
     architecture and the CPU's SIMD flags (those of `SIMD_FLAGS` in /proc/cpuinfo; ``None`` where it
     cannot be read)."""
     import jax
     import jaxlib
     import numpy as np
     import OpenImageIO as oiio
+
+    from jaxfish.io._png import deflate_name
 
     flags: list[str] | None = None
     try:
@@ -79,7 +82,8 @@ def environment() -> dict[str, object]:
     except OSError:
         pass
     return {"python": platform.python_version(), "jax": jax.__version__, "jaxlib": jaxlib.__version__,
-            "numpy": np.__version__, "OpenImageIO": oiio.__version__, "backend": jax.default_backend(),
+            "numpy": np.__version__, "OpenImageIO": oiio.__version__,
+            "png_deflate": deflate_name(), "backend": jax.default_backend(),
             "jax_enable_x64": bool(jax.config.jax_enable_x64),
             "jax_numpy_dtype_promotion": str(jax.config.jax_numpy_dtype_promotion),
             "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "machine": platform.machine(), "simd": flags}

@@ -1,4 +1,6 @@
-"""Image files through OpenImageIO (EXR float32/half, PNG 8/16 bit), dtype-preserving.
+"""Image files, dtype-preserving: PNG (8/16 bit) through jaxfish's own codec (`jaxfish.io._png`:
+Up filter, one ISA-L deflate stream; fast inflate, pyspng or OpenImageIO to read), EXR float32/half
+(and the other formats) through OpenImageIO.
 
 Library traps handled here (CONVENTIONS §8): 2-D arrays are written as (H, W, 1); pixels are read
 with the file's own format (``oiio.UNKNOWN``) so uint8/uint16/half/float survive a round trip;
@@ -20,12 +22,13 @@ import OpenImageIO as oiio
 from .._errors import ImageError
 from ._atomic import atomic_path
 from ._json import regular_file, to_json_text
+from ._png import PNG_SIGNATURE, decode_png, encode_png, png_text, read_png_bytes
 
 _WRITABLE = {".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg"}
 PNG_LEVEL = 1
-"""zlib level of the PNGs `write_image` writes by default (1 = fastest). With the Up row filter
-(`PNG_FILTER`), level 1 encodes and decodes faster than OpenImageIO's default (level 6, no
-filter) for larger files; the figures are in ``docs/performance.md``."""
+"""Compression level (zlib's 0-9 scale) of the PNGs `write_image` writes by default (1 = fastest
+that compresses; ISA-L's level for each is `jaxfish.io._png.ISAL_LEVELS`); the figures are in
+``docs/performance.md``."""
 PNG_FILTER = 0x20
 """PNG row filter of every written PNG: "Up" (libpng ``PNG_FILTER_UP``; each row minus the row above)."""
 _DTYPES = {
@@ -35,9 +38,6 @@ _DTYPES = {
     np.dtype(np.float32): oiio.FLOAT,
 }
 
-
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-"""The first eight bytes of every PNG file."""
 _SIGNATURES = ((b"\xff\xd8\xff", "JPEG data"), (b"GIF8", "GIF data"), (b"BM", "BMP data"), (b"RIFF", "WebP/RIFF data"),
                (b"v/1\x01", "OpenEXR data"), (b"II*\x00", "TIFF data"), (b"MM\x00*", "TIFF data"))
 
@@ -68,12 +68,27 @@ def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None 
         regular_file(path, ImageError, "image file")
     except FileNotFoundError:
         raise ImageError(f"{path}: image file not found") from None
-    if lossless:
+    try:
         with open(path, "rb") as fh:
             head = fh.read(len(PNG_SIGNATURE))
-        if head != PNG_SIGNATURE:
-            found = _sniff(head)
-            raise ImageError(f"{path}: expected a lossless PNG file, found {found} (the PNG signature is missing)")
+    except OSError as e:
+        raise ImageError(f"{path}: cannot read image file ({e.strerror or e})") from None
+    if lossless and head != PNG_SIGNATURE:
+        found = _sniff(head)
+        raise ImageError(f"{path}: expected a lossless PNG file, found {found} (the PNG signature is missing)")
+    if head == PNG_SIGNATURE:
+        pixels = decode_png(read_png_bytes(path), str(path), fallback=lambda: _read_oiio(path))
+    else:
+        pixels = _read_oiio(path)
+    if expect_shape is not None:
+        got = pixels.shape[: len(expect_shape)]
+        if tuple(got) != tuple(expect_shape):
+            raise ImageError(f"{path}: expected an image of shape {tuple(expect_shape)}, got {pixels.shape}")
+    return pixels
+
+
+def _read_oiio(path: Path) -> np.ndarray:
+    """``(H, W, C)`` pixels of ``path`` by OpenImageIO in the file's own format."""
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # keep RGBA values as stored (no premultiplication)
     inp = oiio.ImageInput.open(str(path), config)
@@ -92,10 +107,6 @@ def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None 
         pixels = pixels[..., None]
     if pixels.shape[:2] != (spec.height, spec.width):
         raise ImageError(f"{path}: corrupt image (read {pixels.shape}, header says {spec.height}x{spec.width}) {err}")
-    if expect_shape is not None:
-        got = pixels.shape[: len(expect_shape)]
-        if tuple(got) != tuple(expect_shape):
-            raise ImageError(f"{path}: expected an image of shape {tuple(expect_shape)}, got {pixels.shape}")
     return pixels
 
 
@@ -104,9 +115,12 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
                 exr_compression: str = "zip") -> Path:
     """Write ``(H, W)`` or ``(H, W, C)`` pixels, keeping the dtype (uint8/uint16 PNG, float16/float32
     EXR). ``metadata``: ``{attribute name: JSON-able value}`` stored as JSON text attributes (read
-    back with `read_image_metadata`). ``png_level``: zlib level 0-9 of a PNG (default `PNG_LEVEL`;
-    every PNG uses the `PNG_FILTER` row filter); the same pixels and level always give the same
-    bytes. ``channel_names`` (one per channel, e.g. ``("Z",)`` for an EXR depth map) and
+    back with `read_image_metadata`; PNG ``tEXt`` chunks, which OpenImageIO reads as attributes of
+    the same name). ``png_level``: compression level 0-9 of a PNG on zlib's scale (default
+    `PNG_LEVEL`; 0 stores the rows uncompressed; `jaxfish.io._png.ISAL_LEVELS` maps the others to
+    ISA-L's 0-3); every PNG uses the `PNG_FILTER` row filter and one deflate stream (ISA-L, or zlib
+    where ``isal`` does not import: other bytes, the same pixels); the same pixels, metadata and
+    level always give the same bytes with the same deflate implementation. ``channel_names`` (one per channel, e.g. ``("Z",)`` for an EXR depth map) and
     ``exr_compression`` (OpenEXR's ``"zip"``, ``"none"``, ``"piz"``, ...) apply to EXR files. No
     timestamp is stored: the same arguments always give the same bytes. Atomic: on any error
     nothing is left at ``path``."""
@@ -133,6 +147,13 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
     h, w, c = a.shape
     if channel_names is not None and len(channel_names) != c:
         raise ImageError(f"{path}: {len(channel_names)} channel names for {c} channels")
+    meta = {name: to_json_text(f"{path} (metadata {name!r})", value, error=ImageError).rstrip("\n")
+            for name, value in (metadata or {}).items()}
+    if ext == ".png":
+        data = encode_png(a, text=meta, png_level=png_level, where=str(path))
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(data)
+        return path
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
@@ -142,13 +163,10 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
             spec.channelnames = tuple(str(n) for n in channel_names)
         if ext == ".exr":
             spec.attribute("compression", exr_compression)
-        elif ext == ".png":
-            spec.attribute("png:compressionLevel", png_level)
-            spec.attribute("png:filter", PNG_FILTER)
         spec.attribute("oiio:UnassociatedAlpha", 1)  # the pixels are written as given
         spec.attribute("DateTime", "")  # no timestamp (OpenEXR's capDate): the same pixels give the same bytes
-        for name, value in (metadata or {}).items():
-            spec.attribute(name, to_json_text(f"{path} (metadata {name!r})", value, error=ImageError).rstrip("\n"))
+        for name, value in meta.items():
+            spec.attribute(name, value)
         if not out.open(str(tmp), spec):
             raise ImageError(f"{path}: cannot open for writing ({out.geterror()})")
         ok = out.write_image(a)
@@ -166,13 +184,21 @@ def read_image_metadata(path: str | os.PathLike, name: str) -> Any:
         regular_file(path, ImageError, "image file")
     except FileNotFoundError:
         raise ImageError(f"{path}: image file not found") from None
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise ImageError(f"{path}: cannot open ({oiio.geterror()})")
     try:
-        value = inp.spec().get_string_attribute(name, "")
-    finally:
-        inp.close()
+        with open(path, "rb") as fh:
+            head = fh.read(len(PNG_SIGNATURE))
+    except OSError as e:
+        raise ImageError(f"{path}: cannot read image file ({e.strerror or e})") from None
+    if head == PNG_SIGNATURE:
+        value = png_text(read_png_bytes(path), str(path)).get(name, "")
+    else:
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            raise ImageError(f"{path}: cannot open ({oiio.geterror()})")
+        try:
+            value = inp.spec().get_string_attribute(name, "")
+        finally:
+            inp.close()
     if not value:
         raise ImageError(f"{path}: no '{name}' metadata")
     try:
