@@ -15,6 +15,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from .._errors import JaxfishError
 from ._options import DatasetError
 
 SHARDS_DIR = ".shards"
@@ -216,10 +217,11 @@ def source_origin(source) -> dict[str, Any] | None:
 
         from ..io._calibration_json import calibration_to_dict
 
-        return {"embedded": json.loads(json.dumps({"seed": source.seed, "frames": len(source.frames),
-                                        "config": dataclasses.asdict(source.config),
-                                        "calibrations": {n: calibration_to_dict(c)
-                                                         for n, c in source.render_rig.items()}}))}
+        rig = source.render_rig
+        return {"embedded": json.loads(json.dumps({
+            "seed": source.seed, "frames": len(source.frames), "config": dataclasses.asdict(source.config),
+            "calibrations": {n: calibration_to_dict(c) for n, c in rig.items()},
+            "leaves": {n: _leaves(c) for n, c in rig.items()}}))}
     return None
 
 
@@ -237,11 +239,38 @@ def reopen_source(origin: Any, where: str):
         spec = origin["embedded"]
         try:
             config = CaptureConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in spec["config"].items()})
-            rig = {n: calibration_from_dict(d, source=f"{where}: field 'origin.embedded.calibrations.{n}'")
+            rig = {n: _with_leaves(calibration_from_dict(d, source=f"{where}: field 'origin.embedded.calibrations.{n}'"),
+                                   spec["leaves"][n], f"{where}: field 'origin.embedded.leaves.{n}'")
                    for n, d in spec["calibrations"].items()}
             return EmbeddedSource(rig, frames=spec["frames"], seed=spec["seed"], config=config)
-        except (KeyError, TypeError, AttributeError) as e:
+        except (KeyError, TypeError, AttributeError, ValueError) as e:
+            if isinstance(e, JaxfishError):  # names the field itself
+                raise
             raise DatasetError(f"{where}: field 'origin.embedded' is malformed ({type(e).__name__}: {e})") from None
     raise DatasetError(f"{where}: field 'origin' names no capture (the shards were built from a source jaxfish cannot "
                        f"reopen): give the capture (jaxfish merge DATASET --capture CAPTURE_DIR, "
                        f"merge_shards(..., source=...))")
+
+
+def _leaves(calibration) -> list[dict[str, Any]]:
+    """A calibration's array leaves, exactly (dtype, shape, values): its JSON (a quaternion of a
+    float32 rotation) does not give the same floats back, and the scene renders with these."""
+    import jax
+    import numpy as np
+
+    return [{"dtype": str(np.asarray(x).dtype), "shape": list(np.shape(x)),
+             "values": np.asarray(x).ravel().tolist()} for x in jax.tree_util.tree_leaves(calibration)]
+
+
+def _with_leaves(template, leaves: Any, where: str):
+    """``template`` (a calibration read from its JSON) with the exact array leaves `_leaves` recorded."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    structure = jax.tree_util.tree_structure(template)
+    if not isinstance(leaves, list) or len(leaves) != structure.num_leaves:
+        raise DatasetError(f"{where}: expected {structure.num_leaves} arrays")
+    arrays = [jnp.asarray(np.asarray(leaf["values"], dtype=np.dtype(leaf["dtype"])).reshape(leaf["shape"]))
+              for leaf in leaves]
+    return jax.tree_util.tree_unflatten(structure, arrays)

@@ -273,3 +273,19 @@ def test_synth_shard_merge_refuses_a_missing_shard_or_a_changed_frame(capture3, 
         merge_shards(root)
     with pytest.raises(CaptureError, match="shard"):
         synthesize_capture(tmp_path / "bad", demo_rig(SCALE), frames=1, config=demo_config(SCALE), shard=(1, 1))
+
+
+def test_embedded_scene_shards_merge_from_the_settings_their_records_hold(tmp_path):
+    from jaxfish.dataset import EmbeddedSource
+
+    def source():
+        return EmbeddedSource(demo_rig(SCALE), frames=2, seed=SEED, config=demo_config(SCALE))
+
+    assert build_dataset(source(), tmp_path / "whole").ok
+    out = tmp_path / "dataset"
+    for i in range(2):
+        assert build_dataset(source(), out, shard=(i, 2)).ok
+    record = json.loads((out / ".shards" / "0-of-2.json").read_text())
+    assert record["origin"]["embedded"]["seed"] == SEED and record["origin"]["embedded"]["frames"] == 2
+    merge_shards(out)  # no source given: the scene is made again from the record
+    assert_same_tree(tmp_path / "whole", out)
