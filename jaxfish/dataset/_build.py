@@ -8,7 +8,9 @@ it locks; it removes the temporary files a killed run left behind, refuses a fol
 another capture or other options made (unless asked to rebuild them), skips complete samples, runs
 the remaining samples serially or on a dask.distributed cluster (the bytes are the same), reports
 each failing sample with its reason, and finally writes the dataset-level files (``dataset.json``,
-``calibration_data``, ``seg_annotation_info.json``).
+``calibration_data``, ``seg_annotation_info.json``). A shard build (``shard=(I, N)``) builds its
+1/N of the samples under its shard's lock and writes its shard record instead; `merge_shards`
+(``_merge.py``) ends the folder as a whole build does (`finish_dataset`).
 """
 
 from __future__ import annotations

@@ -100,8 +100,7 @@ def _check_split(records: dict[Path, dict[str, Any]], count: int) -> None:
     for path, doc in records.items():
         requested, samples = doc.get("requested"), doc.get("samples", doc.get("frames"))
         for field, value in (("requested", requested), ("samples", samples)):
-            if not isinstance(value, list) or not all(isinstance(v, (str, int)) and not isinstance(v, bool)
-                                                      for v in value):
+            if not isinstance(value, list) or not all(_is_id(v) for v in value):
                 raise DatasetError(f"{path}: field {field!r}: expected a list of sample ids")
         try:
             expect = Shard(doc["shard"][0], count).select([int(v) for v in requested])
@@ -110,6 +109,13 @@ def _check_split(records: dict[Path, dict[str, Any]], count: int) -> None:
         if [int(v) for v in samples] != expect:
             raise DatasetError(f"{path}: field 'samples' is not shard {doc['shard'][0]}/{count} of field 'requested' "
                                f"(the shards' rule: the k-th sorted frame goes to shard k mod N)")
+
+
+def _is_id(value: Any) -> bool:
+    """A sample id (``"00001"``, `sample_id`) or a frame number (a capture shard's)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value >= 0
+    return isinstance(value, str) and value.isascii() and value.isdigit() and sample_id(int(value)) == value
 
 
 def _options_of(record: dict[str, Any], where: str) -> BuildOptions:

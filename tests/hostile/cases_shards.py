@@ -93,3 +93,9 @@ CASES = [
     Case("shards-merge-capture-not-found", "merge {tmp}/ds --capture {tmp}/nowhere",
          setup=_fake_shard_records("0-of-1"), says=("--capture",), absent=("{tmp}/ds/dataset.json",)),
 ]
+
+CASES += [
+    Case("shards-merge-record-path-in-samples", "merge {tmp}/ds",
+         setup=_fake_shard_records("0-of-1", edit=lambda d: {**d, "requested": ["../../etc/x"], "samples": ["../../etc/x"]}),
+         says=("0-of-1.json", "field 'requested'"), absent=("{tmp}/ds/dataset.json",)),
+]
