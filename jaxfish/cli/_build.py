@@ -98,16 +98,19 @@ def stop_on_signals():
 
 def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
               workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
-              motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1, rebuild: bool = False):
+              motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1, rebuild: bool = False,
+              shard=None):
     """Run `jaxfish.dataset.build_dataset` of ``capture_dir`` (a capture directory or any
     `jaxfish.dataset.FrameSource`) with a rich progress bar (samples/s); returns the report.
+    ``shard``: a `jaxfish.dataset.Shard` to build only that shard (`resolve_shard`).
     SIGINT or SIGTERM stops the build (`jaxfish.dataset.BuildInterrupted`): one ``interrupted:``
     line on stderr (then one line per sample that failed before), exit status `INTERRUPTED_STATUS`."""
     try:
         with stop_on_signals():
             return _run_build(capture_dir, out_dir, frames=frames, scheduler=scheduler, workers=workers,
                               processes=processes, backward_flow=backward_flow, bev=bev, write_threads=write_threads,
-                              motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames, rebuild=rebuild)
+                              motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames, rebuild=rebuild,
+                              shard=shard)
     except KeyboardInterrupt as e:
         from ..dataset import BuildInterrupted
 
@@ -121,13 +124,15 @@ def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler
 
 def _run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
                workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
-               motion_threshold_m: float, png_level: int, batch_frames: int, rebuild: bool):
+               motion_threshold_m: float, png_level: int, batch_frames: int, rebuild: bool, shard=None):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ..dataset import BuildOptions, as_source, build_dataset
 
     # ``frames`` were checked against the capture by the caller (`parse_frames`, or the demo's own range)
     frames_ = frames if frames is not None else as_source(capture_dir).frames
+    if shard is not None:
+        frames_ = shard.select(frames_)
     total = len(frames_)
     options = BuildOptions(backward_flow=backward_flow, bev=bev, motion_threshold_m=motion_threshold_m,
                            png_level=png_level, write_threads=write_threads, batch_frames=batch_frames)
@@ -150,12 +155,35 @@ def _run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, schedule
             bar.update(task, advance=1, description=f"sample {sample}{state}", rate=rate)
 
         report = build_dataset(capture_dir, out_dir, frames=frames, options=options, scheduler=scheduler,
-                               workers=workers, processes=processes, progress=tick, rebuild=rebuild)
+                               workers=workers, processes=processes, progress=tick, rebuild=rebuild, shard=shard)
     failures = [f"  sample {s} failed: {r}" for s, r in sorted(report.failed.items())]
     say("\n".join(line for line in report.summary().split("\n") if line not in failures))  # the result: stdout
     for line in failures:  # why samples failed: diagnostics, on stderr
         note(line)
+    if shard is not None:
+        say(f"shard {shard}: " + (f"complete, record {shard.record_path(out_dir)} written; once every shard is "
+                                  f"complete: jaxfish merge {out_dir}" if report.ok else
+                                  "not complete (no shard record): run the same command again"))
     return report
+
+
+def resolve_shard(text: str | None):
+    """The `jaxfish.dataset.Shard` of ``--shard`` (``I/N``, or ``all``: the whole build), or when
+    ``--shard`` is not given, of the SLURM job array (`jaxfish.dataset.slurm_shard`), else None.
+    A bad value prints ``error: ...`` and exits 2."""
+    from ..dataset import DatasetError, parse_shard, slurm_shard
+
+    try:
+        if text is not None:
+            return None if text.strip().lower() == "all" else parse_shard(text)
+        return slurm_shard()
+    except DatasetError as e:
+        raise fail(str(e)) from None
+
+
+SHARD_HELP = ("Build only shard I of N (e.g. 0/4: the k-th of the sorted frames goes to shard k mod N) into the "
+              "shared OUT_DIR, then `jaxfish merge OUT_DIR`; default: the SLURM job array's task "
+              "(SLURM_ARRAY_TASK_ID / SLURM_ARRAY_TASK_COUNT) when set; 'all': the whole build.")
 
 
 @app.command()
@@ -176,17 +204,21 @@ def build(
                                      help="Consecutive samples per batched ground-truth call (one vmapped program on a GPU)."),
     rebuild: bool = typer.Option(False, "--rebuild",
                                  help="Rebuild the samples OUT_DIR holds from another capture or with other options."),
+    shard: str | None = typer.Option(None, "--shard", metavar="I/N", help=SHARD_HELP),
 ) -> None:
     """Build a SynWoodScape-style dataset from a capture: every camera's images, depth, semantics,
     instances, motion, flow, events and boxes, plus dataset.json. Resumable (complete samples are
     skipped); a folder whose samples another capture or other options made is refused unless
-    --rebuild; exit status 1 when any sample failed (each is listed with its reason)."""
+    --rebuild; exit status 1 when any sample failed (each is listed with its reason). With --shard
+    I/N (or in a SLURM job array) only shard I of N, without dataset.json: `jaxfish merge`
+    finishes the folder once every shard is complete."""
     if not capture_dir.is_dir():
         raise fail(f"{capture_dir}: capture directory not found")
     if workers is not None and workers < 1:
         raise fail(f"--workers must be at least 1, got {workers}")
     if write_threads < 0:
         raise fail(f"--write-threads must be >= 0, got {write_threads}")
+    chosen_shard = resolve_shard(shard)
     chosen = None
     if frames:  # checked against the capture's frames before anything is expanded or written
         from ..io import CaptureReader
@@ -195,6 +227,6 @@ def build(
     report = run_build(capture_dir, out_dir, frames=chosen, scheduler=scheduler, workers=workers,
                        processes=processes, backward_flow=backward_flow, bev=bev, write_threads=write_threads,
                        motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames,
-                       rebuild=rebuild)
+                       rebuild=rebuild, shard=chosen_shard)
     if not report.ok:
         raise typer.Exit(1)

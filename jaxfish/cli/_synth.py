@@ -26,14 +26,20 @@ def synth(
     bev_size: int = typer.Option(1024, "--bev-size", help="BEV top-view image size in pixels."),
     front_width: int = typer.Option(1632, "--front-width", help="Front perspective camera width (4:3)."),
     dvs_substeps: int = typer.Option(4, "--dvs-substeps", help="Sub-frames between t-1 and t for DVS events."),
+    shard: str | None = typer.Option(None, "--shard", metavar="I/N", help="Render (or with --build, build) only "
+                                     "shard I of N of the frames (frame k when k mod N = I), then `jaxfish merge` the "
+                                     "folder; default: the SLURM job array's task when set; 'all': every frame."),
 ) -> None:
     """Render the embedded procedural street scene as a CARLA-style capture (layout:
-    docs/capture_layout.md), or with --build straight into a SynWoodScape-style dataset."""
+    docs/capture_layout.md), or with --build straight into a SynWoodScape-style dataset. Every
+    frame is a function of the seed and its number: --shard I/N runs render the same frames as
+    one run, and `jaxfish merge` then lists them in capture.json (or writes dataset.json)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from .. import default_rig, load_rig
     from ..dataset import rig_names, steps_per_frame, synthesize_capture
     from ..scene import CaptureConfig
+    from ._build import resolve_shard
 
     if (out is None) == (build is None):
         raise fail("give exactly one of --out CAPTURE_DIR (write a capture) and --build DATASET_DIR (build in memory)")
@@ -47,6 +53,7 @@ def synth(
         raise fail(f"--face-size must be at least 8 pixels, got {face_size}")
     if bev_size < 8 or front_width < 8 or dvs_substeps < 1:
         raise fail("--bev-size and --front-width must be at least 8, --dvs-substeps at least 1")
+    chosen_shard = resolve_shard(shard)
     if rig_dir is not None:
         if not rig_dir.is_dir() or not rig_names(rig_dir):
             raise fail(f"{rig_dir}: not a directory of calibration JSON files")
@@ -63,13 +70,18 @@ def synth(
 
         report = run_build(EmbeddedSource(rig, frames=frames, seed=seed, config=config), build,
                            frames=list(range(frames)), scheduler=None, workers=workers, processes=True,
-                           backward_flow=False, bev=True, write_threads=2)
+                           backward_flow=False, bev=True, write_threads=2, shard=chosen_shard)
         if not report.ok:
             raise typer.Exit(1)
         return
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console, transient=False) as bar:
-        task = bar.add_task("synth", total=frames * steps_per_frame(rig))
-        synthesize_capture(out, rig, frames=frames, seed=seed, config=config,
+        own = len(chosen_shard.select(range(frames))) if chosen_shard is not None else frames
+        task = bar.add_task("synth", total=own * steps_per_frame(rig))
+        synthesize_capture(out, rig, frames=frames, seed=seed, config=config, shard=chosen_shard,
                            progress=lambda msg: bar.update(task, advance=1, description=msg))
-    say(f"wrote {frames} frame(s) to {out} in {time.perf_counter() - start:.1f} s")
+    if chosen_shard is None:
+        say(f"wrote {frames} frame(s) to {out} in {time.perf_counter() - start:.1f} s")
+        return
+    say(f"shard {chosen_shard}: wrote {own} of {frames} frame(s) to {out} in {time.perf_counter() - start:.1f} s; "
+        f"once every shard is complete: jaxfish merge {out}")

@@ -13,6 +13,7 @@ from ._build import build_samples as build_samples
 from ._build import capture_fingerprint as capture_fingerprint
 from ._build import check_output_folder as check_output_folder
 from ._build import clear_worker_cache as clear_worker_cache
+from ._build import finish_dataset as finish_dataset
 from ._build import frame_fingerprint as frame_fingerprint
 from ._build import has_bev as has_bev
 from ._build import is_complete as is_complete
@@ -36,6 +37,8 @@ from ._layout import sample_id as sample_id
 from ._manifest import DATASET_FORMAT as DATASET_FORMAT
 from ._manifest import dataset_manifest as dataset_manifest
 from ._manifest import write_dataset_files as write_dataset_files
+from ._merge import MergeReport as MergeReport
+from ._merge import merge_shards as merge_shards
 from ._reader import CAMERA_FIELDS as CAMERA_FIELDS
 from ._reader import FIELDS as FIELDS
 from ._reader import LAYOUT_JAXFISH as LAYOUT_JAXFISH
@@ -62,6 +65,11 @@ from ._reader import vehicle_to_world_matrix as vehicle_to_world_matrix
 from ._runtime import core_shares as core_shares
 from ._runtime import share_cores as share_cores
 from ._runtime import tune_allocator as tune_allocator
+from ._shards import SHARD_RULE as SHARD_RULE
+from ._shards import SHARDS_DIR as SHARDS_DIR
+from ._shards import Shard as Shard
+from ._shards import parse_shard as parse_shard
+from ._shards import slurm_shard as slurm_shard
 from ._sink import LayoutSink as LayoutSink
 from ._sink import synwoodscape_palette_dict as synwoodscape_palette_dict
 from ._sources import CaptureSource as CaptureSource

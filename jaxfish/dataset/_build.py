@@ -8,7 +8,9 @@ it locks; it removes the temporary files a killed run left behind, refuses a fol
 another capture or other options made (unless asked to rebuild them), skips complete samples, runs
 the remaining samples serially or on a dask.distributed cluster (the bytes are the same), reports
 each failing sample with its reason, and finally writes the dataset-level files (``dataset.json``,
-``calibration_data``, ``seg_annotation_info.json``).
+``calibration_data``, ``seg_annotation_info.json``). A shard build (``shard=(I, N)``) builds its
+1/N of the samples under its shard's lock and writes its shard record instead; `merge_shards`
+(``_merge.py``) ends the folder as a whole build does (`finish_dataset`).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from ._options import BuildReport as BuildReport
 from ._options import DatasetError as DatasetError
 from ._options import sample_span
 from ._runtime import BUILD_PID_ENV, share_cores, tune_allocator
+from ._shards import SHARD_FORMAT, SHARD_RULE, SHARDS_DIR, Shard, as_shard, remove_shard_records, source_origin
 from ._sink import LayoutSink, write_sensor_files
 from ._sources import CaptureSource, FrameSource, as_source
 
@@ -86,8 +89,8 @@ def _frame_key(frame: int) -> str:
     return f"frames/{int(frame):06d}"
 
 
-def _marker_differences(doc: Any, options: dict[str, Any], capture: dict[str, str], source,
-                        frames: set[int]) -> list[str]:
+def marker_differences(doc: Any, options: dict[str, Any], capture: dict[str, str], source,
+                       frames: set[int]) -> list[str]:
     """What differs between a completion marker and this build (empty when nothing does)."""
     opts, recorded = (doc.get("options"), doc.get("source")) if isinstance(doc, dict) else (None, None)
     if not isinstance(opts, dict) or not isinstance(recorded, dict):
@@ -122,7 +125,7 @@ def _outdated_samples(out: Path, source, options: BuildOptions) -> dict[str, lis
             continue
         if not isinstance(doc, dict) or doc.get("layout_version") != LAYOUT_VERSION:
             continue
-        diffs = _marker_differences(doc, wanted, capture, source, frames)
+        diffs = marker_differences(doc, wanted, capture, source, frames)
         if diffs:
             outdated[marker.stem] = diffs
     return outdated
@@ -173,7 +176,8 @@ def _running():
 
 
 # ------------------------------------------------------------------------------------- one sample
-def _sha256(path: Path) -> str:
+def sha256_file(path: Path) -> str:
+    """SHA-256 (hex) of a file's bytes."""
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
@@ -269,7 +273,7 @@ def _write_sample(source, out: Path, truth: SampleTruth, options: BuildOptions, 
 
     def hashed(fn, *args) -> list[tuple[Path, str]]:
         _check_stop()
-        return [(p, _sha256(p)) for p in fn(*args)]  # the bytes are still in the page cache
+        return [(p, sha256_file(p)) for p in fn(*args)]  # the bytes are still in the page cache
 
     jobs = sink.jobs(sid, truth)[:-1]  # the sensor files go through the `_sample_extras` hook
     extras = _Extras(truth.sensors, f"{source.where}: frame {frame} ego record")
@@ -372,14 +376,43 @@ def is_complete(out_dir: str | os.PathLike, sample: str) -> bool:
     return all((Path(out_dir) / rel).is_file() for rel in files)
 
 
-def remove_stale_temporaries(out_dir: str | os.PathLike) -> int:
+def remove_stale_temporaries(out_dir: str | os.PathLike, *, owned: Callable[[Path], bool] | None = None) -> int:
     """Delete the temporary files jaxfish's atomic writes left in ``out_dir`` when a run was killed
     (``.jaxfish-{run}-{name}.{random}.part{suffix}``; no other file, whatever its name); returns how
     many. Only call it when no other build writes to ``out_dir`` (`build_dataset` holds the
-    folder's lock)."""
+    folder's lock). ``owned``: only those whose destination (``folder / stem`` relative to
+    ``out_dir``) it accepts (a shard build's own, `jaxfish.io._folder.remove_temporaries`)."""
     from ..io._folder import remove_temporaries
 
-    return remove_temporaries(out_dir)
+    return remove_temporaries(out_dir, owned=owned)
+
+
+def finish_dataset(source, out_dir: str | os.PathLike, options: BuildOptions) -> None:
+    """The end of a whole build, and of `merge_shards`: write the dataset-level files
+    (`write_dataset_files`: ``dataset.json`` listing every complete sample, ``calibration_data``,
+    ``seg_annotation_info.json``) and remove the shard records (``.shards/``), which the
+    dataset-level files supersede. Call it holding the folder's exclusive lock."""
+    from ._manifest import write_dataset_files
+
+    write_dataset_files(source, out_dir, options)
+    remove_shard_records(out_dir)
+
+
+def write_shard_record(source, out_dir: str | os.PathLike, options: BuildOptions, shard: Shard,
+                       requested: Sequence[int], samples: Sequence[str]) -> Path:
+    """Write shard ``shard``'s record ``.shards/{I}-of-{N}.json`` (atomically; the last write of a
+    shard build whose samples are all complete): the rule, the ``requested`` frames' sample ids,
+    its own ``samples``, the layout version, ``options`` (`BuildOptions.to_dict`), the source's
+    fingerprint and ``origin`` (where `merge_shards` finds the source again)."""
+    from ..io._json import write_json
+
+    record = {"format": SHARD_FORMAT, "kind": "dataset", "shard": [shard.index, shard.count], "rule": SHARD_RULE,
+              "requested": [sample_id(f) for f in sorted(set(requested))], "samples": list(samples),
+              "layout_version": LAYOUT_VERSION, "options": options.to_dict(), "source": source.fingerprint(),
+              "origin": source_origin(source)}
+    path = shard.record_path(out_dir)
+    write_json(path, record, indent=1, error=DatasetError)
+    return path
 
 
 def _is_dataset_folder(out: Path) -> bool:
@@ -420,6 +453,7 @@ def build_dataset(
     processes: bool = True,
     progress: Callable[[str, str | None], None] | None = None,
     rebuild: bool = False,
+    shard: Shard | tuple[int, int] | None = None,
 ) -> BuildReport:
     """Build the dataset of a source of frames (``docs/dataset.md``): a capture directory (its
     path or a `CaptureSource`), the embedded scene in memory (`EmbeddedSource`) or any other
@@ -444,8 +478,18 @@ def build_dataset(
     A ``KeyboardInterrupt`` while samples run stops the build: the workers of a local cluster end
     (process workers are killed, thread workers stop before their next file), the files of the
     samples cut off and the temporary files are deleted (on an external ``scheduler`` the pending
-    tasks are cancelled and files are left to the resume), then `BuildInterrupted` is raised."""
+    tasks are cancelled and files are left to the resume), then `BuildInterrupted` is raised.
+
+    ``shard=(I, N)`` (a `Shard`) builds only shard I of N of the requested frames (the frames,
+    sorted, numbered k = 0, 1, ...: frame k goes to shard k mod N), so that N builds, on as many
+    machines sharing ``out_dir``, build every sample once. A shard build locks only its shard (a
+    build of the same shard, of the whole folder or of shards of another N meanwhile raises
+    `DatasetError`), removes only its own samples' temporary files, checks (and with ``rebuild``
+    removes) only its own samples, and instead of the dataset-level files writes its shard record
+    ``.shards/{I}-of-{N}.json`` last, when all its samples are complete; `merge_shards`
+    (``jaxfish merge``) then writes them once every shard's record is there."""
     options = options or BuildOptions()
+    shard = as_shard(shard)
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise DatasetError(f"workers must be an integer >= 1, got {workers!r}")
     if frames is not None:
@@ -459,21 +503,44 @@ def build_dataset(
         source.bev_sensor()  # its scale, size and mount
     out = check_output_folder(out_dir)
     (out / DONE_DIR).mkdir(parents=True, exist_ok=True)  # marks the folder as a jaxfish dataset from now on
-    from ..io._folder import folder_lock
+    from ..io._folder import folder_lock, shard_lock
 
-    with folder_lock(out, DatasetError, "build"):  # the driver's: dask workers write under it
-        return _build_locked(source, out, frames, options, scheduler, workers, processes, progress, rebuild, start)
+    lock = (folder_lock(out, DatasetError, "build") if shard is None else
+            shard_lock(out, out / SHARDS_DIR, shard.index, shard.count, DatasetError, "build"))
+    with lock:  # the driver's: dask workers write under it
+        return _build_locked(source, out, frames, options, scheduler, workers, processes, progress, rebuild, start,
+                             shard)
+
+
+def _shard_owner(shard: Shard, samples: Sequence[str]) -> Callable[[Path], bool]:
+    """Whether a temporary file's destination (``folder / stem``, relative to the dataset) is one
+    of ``samples``' files or ``shard``'s record: what a shard build may clean up."""
+    own = set(samples)
+    record = Path(SHARDS_DIR) / shard.name
+
+    def owned(dest: Path) -> bool:
+        return dest == record or dest.name.split("_", 1)[0] in own
+
+    return owned
 
 
 def _build_locked(source, out: Path, frames: Sequence[int] | None, options: BuildOptions, scheduler: str | None,
                   workers: int | None, processes: bool, progress: Callable[[str, str | None], None] | None,
-                  rebuild: bool, start: float) -> BuildReport:
+                  rebuild: bool, start: float, shard: Shard | None = None) -> BuildReport:
     available = source.frames
     wanted = list(available) if frames is None else [int(f) for f in frames]
+    requested = sorted(set(wanted))
+    owned = None
+    if shard is not None:
+        wanted = shard.select(wanted)
+        owned = _shard_owner(shard, [sample_id(f) for f in wanted])
+        shard.record_path(out).unlink(missing_ok=True)  # written again once this shard is complete
     missing = [f for f in wanted if f not in available]
     report = BuildReport(out_dir=out, samples=[sample_id(f) for f in wanted])
-    report.stale_removed = remove_stale_temporaries(out)
+    report.stale_removed = remove_stale_temporaries(out, owned=owned)
     outdated = _outdated_samples(out, source, options)
+    if shard is not None:  # a shard judges (and replaces) only its own samples
+        outdated = {sid: diffs for sid, diffs in outdated.items() if sid in set(report.samples)}
     if outdated and not rebuild:
         raise _outdated_error(out, outdated)
     for sid in sorted(outdated):
@@ -508,23 +575,26 @@ def _build_locked(source, out: Path, frames: Sequence[int] | None, options: Buil
                 for result in _counted_batch_task(source, str(out), frames_, options):
                     record(*result)
     except KeyboardInterrupt:  # every writer of this build has stopped (remote workers aside): clean up, report
-        raise _interrupted(report, out, todo, scheduler is None, start) from None
-    from ._manifest import write_dataset_files
-
-    write_dataset_files(source, out, options)
+        raise _interrupted(report, out, todo, scheduler is None, start, owned) from None
+    if shard is None:
+        finish_dataset(source, out, options)
+    elif report.ok:
+        write_shard_record(source, out, options, shard, requested, report.samples)
     report.built.sort()
     report.seconds = time.perf_counter() - start
     return report
 
 
-def _interrupted(report: BuildReport, out: Path, todo: list[int], clean: bool, start: float) -> BuildInterrupted:
+def _interrupted(report: BuildReport, out: Path, todo: list[int], clean: bool, start: float,
+                 owned: Callable[[Path], bool] | None = None) -> BuildInterrupted:
     """After an interrupt, once nothing of this build writes any more (``clean``): remove the files
-    of the samples it cut off (those not complete) and the temporary files; complete samples stay."""
+    of the samples it cut off (those not complete) and the temporary files (``owned`` only: a
+    shard's); complete samples stay."""
     if clean:
         for f in todo:
             if not is_complete(out, sample_id(f)):
                 remove_sample_files(out, sample_id(f))
-        remove_stale_temporaries(out)
+        remove_stale_temporaries(out, owned=owned)
     report.built.sort()
     report.seconds = time.perf_counter() - start
     return BuildInterrupted(report, [s for s in report.samples if is_complete(out, s)])

@@ -20,6 +20,7 @@ from ._capture import CaptureError as CaptureError
 from ._capture import CaptureReader as CaptureReader
 from ._capture import check_capture_folder as check_capture_folder
 from ._capture import forget_decoded_images as forget_decoded_images
+from ._capture import list_capture_frames as list_capture_frames
 from ._capture import write_capture_header as write_capture_header
 from ._capture import write_frame as write_frame
 from ._carla import CARLA_MAX_DEPTH_M as CARLA_MAX_DEPTH_M

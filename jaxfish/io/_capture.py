@@ -13,7 +13,7 @@ import json
 import math
 import os
 import threading
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -260,8 +260,11 @@ def write_frame(
     radar: np.ndarray,
     imu: Mapping[str, Any],
     gnss: Mapping[str, Any],
+    list_frame: bool = True,
 ) -> Path:
-    """Write one frame (layout in ``docs/capture_layout.md``) and list it in ``capture.json``."""
+    """Write one frame (layout in ``docs/capture_layout.md``) and list it in ``capture.json``
+    (unless ``list_frame=False``: the shards of a capture, which `list_capture_frames` lists once
+    they have all finished, leave ``capture.json`` to it)."""
     root = Path(root)
     d = frame_dir(root, frame.frame)
     for cam, cap in cameras.items():
@@ -282,25 +285,42 @@ def write_frame(
     _json(d / "ego.json", ego_record(frame))
     _json(d / "actors.json", {"frame": frame.frame, "timestamp_s": frame.timestamp_s,
                               "actors": [actor_to_dict(a) for a in frame.actors]})
-    header_path = root / "capture.json"
-    header = json.loads(header_path.read_text())
-    header["frames"] = sorted(set(header["frames"]) | {frame.frame})
-    _json(header_path, header)
+    if list_frame:
+        header_path = root / "capture.json"
+        header = json.loads(header_path.read_text())
+        header["frames"] = sorted(set(header["frames"]) | {frame.frame})
+        _json(header_path, header)
     return d
+
+
+def list_capture_frames(root: str | os.PathLike, frames: Sequence[int]) -> Path:
+    """Set ``capture.json``'s ``frames`` to ``frames`` (sorted, without repeats), atomically: the
+    bytes `write_frame` leaves after writing those frames into a fresh header. A missing or
+    malformed ``capture.json`` raises `CaptureError` naming it."""
+    header_path = Path(root) / "capture.json"
+    try:
+        header = json.loads(header_path.read_text())
+    except (OSError, ValueError) as e:
+        raise CaptureError(f"{header_path}: not a readable capture header ({type(e).__name__}: {e})") from None
+    if not isinstance(header, dict) or "frames" not in header:
+        raise CaptureError(f"{header_path}: field 'frames' missing")
+    header["frames"] = sorted({int(f) for f in frames})
+    _json(header_path, header)
+    return header_path
 
 
 def check_capture_folder(root: str | os.PathLike) -> Path:
     """Refuse (`CaptureError`) a folder a capture must not be written into: a path that is not a
     folder, or a folder that holds files and is not a jaxfish capture (a ``capture.json`` of format
-    ``jaxfish-capture``; a folder holding only what `write_capture_header` writes before it, or
-    jaxfish's temporary files, counts as one). Returns the path."""
+    ``jaxfish-capture``; a folder holding only what `write_capture_header` writes before it,
+    the shard locks of ``.shards/`` or jaxfish's temporary files, counts as one). Returns the path."""
     root = Path(root)
     if root.exists() and not root.is_dir():
         raise CaptureError(f"{root}: not a folder (a capture is written into a folder)")
     if not root.is_dir():
         return root
     names = sorted(p.name for p in root.iterdir())
-    if not names or all(n in ("calibration", "sensors.json") or is_temporary(n) for n in names):
+    if not names or all(n in ("calibration", "sensors.json", ".shards") or is_temporary(n) for n in names):
         return root
     header = root / "capture.json"
     try:

@@ -20,6 +20,7 @@ substring in its message, or, with ``raises=None``, that it returns and ``check`
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import shutil
 import sys
@@ -50,6 +51,8 @@ class Case:
     stdout_says: tuple[str, ...] = ()
     kept: tuple[str, ...] = ()
     """Paths (placeholders allowed) that must still exist after the run: the user's files."""
+    env: tuple[tuple[str, str], ...] = ()
+    """Environment variables ``(name, value)`` set while a CLI case runs (restored after it)."""
 
 
 def edit_json(path: Path, edit: Callable[[Any], Any]) -> None:
@@ -117,7 +120,16 @@ def run_case(case: Case, tmp: Path, capsys) -> None:
     values = prepare(case, tmp)
     if case.command is not None:
         argv = [a.format(**values) for a in shlex.split(case.command)]
-        code, out, err = run_cli(argv, capsys)
+        saved = {name: os.environ.get(name) for name, _ in case.env}
+        os.environ.update(dict(case.env))
+        try:
+            code, out, err = run_cli(argv, capsys)
+        finally:
+            for name, value in saved.items():
+                if value is None:
+                    os.environ.pop(name, None)
+                else:
+                    os.environ[name] = value
         assert "Traceback" not in err and "Traceback" not in out, err[-3000:]
         assert code == case.exit, f"exit {code}, expected {case.exit}\nstdout: {out[-2000:]}\nstderr: {err[-2000:]}"
         for text in case.says:

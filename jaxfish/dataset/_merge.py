@@ -1,0 +1,199 @@
+"""``jaxfish merge FOLDER``: finish a folder that N shard runs wrote (``docs/dataset.md``, "Shards").
+
+A dataset's shards (``jaxfish build --shard I/N``) each leave a record ``.shards/{I}-of-{N}.json``
+and no ``dataset.json``; `merge_shards` checks that every shard finished, that they all come from
+one build (same N, frames, options, layout version and source) and that every sample they list is
+complete, then ends the folder exactly as a whole build ends (`finish_dataset`), so that the folder
+holds the bytes of one build. A capture's shards (``jaxfish synth --out CAPTURE --shard I/N``) are
+finished the same way: `merge_shards` lists their frames in ``capture.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from ._build import finish_dataset, is_complete, marker_differences, remove_stale_temporaries, sha256_file
+from ._layout import LAYOUT_VERSION, sample_id
+from ._options import DONE_DIR, BuildOptions, DatasetError, sample_span
+from ._shards import SHARDS_DIR, Shard, check_same_split, remove_shard_records, reopen_source, shard_records
+
+
+@dataclasses.dataclass(frozen=True)
+class MergeReport:
+    """What `merge_shards` finished: the folder, its ``kind`` (``"dataset"`` or ``"capture"``),
+    the number of shards and the samples (dataset: sample ids) or frames (capture) they made."""
+
+    out_dir: Path
+    kind: str
+    shards: int
+    items: tuple[str, ...]
+
+    def summary(self) -> str:
+        """One line: what was merged into which folder."""
+        what = "sample(s)" if self.kind == "dataset" else "frame(s)"
+        return f"merged {self.shards} shard(s), {len(self.items)} {what} -> {self.out_dir}"
+
+
+_DATASET_FIELDS = ("kind", "requested", "layout_version", "options", "source", "origin", "rule")
+_CAPTURE_FIELDS = ("kind", "requested", "settings", "rule")
+
+
+def merge_shards(folder: str | os.PathLike, *, source=None, verify: bool = False) -> MergeReport:
+    """Finish a folder that N shard runs wrote; returns a `MergeReport`.
+
+    Checks, before writing anything, that ``folder/.shards`` holds the records of shards 0..N-1 of
+    one split (one N; the same requested frames, options, layout version and source fingerprint) and
+    that every sample each lists is complete (its ``.done`` marker present, of this layout version,
+    with the build's options and the source's fingerprint, every file it lists present; with
+    ``verify`` also each file's SHA-256); every other marker in the folder must match the build too,
+    as a whole build requires. Then writes what the end of a whole build writes (`finish_dataset`:
+    ``dataset.json``, ``calibration_data``, ...), removes the temporary files killed runs left and
+    the shard records. A missing shard, a record of another split, a corrupt record or an
+    incomplete sample raises `DatasetError` naming it, and nothing is written.
+
+    ``source``: the source the shards were built from (a `FrameSource` or a capture directory);
+    default: the one their records name (a capture's absolute path, or the embedded scene's
+    settings). The folder is locked like a whole build's (no shard may run meanwhile). A capture
+    folder whose shards ``jaxfish synth --shard`` wrote is finished by `merge_capture_shards`."""
+    out = Path(folder)
+    if not out.is_dir():
+        raise DatasetError(f"{out}: not a folder")
+    from ..io._folder import folder_lock
+
+    with folder_lock(out, DatasetError, "build"):
+        records = shard_records(out)
+        kinds = {doc.get("kind") for doc in records.values()}
+        if kinds == {"capture"}:
+            return merge_capture_shards(out, records)
+        count, first = check_same_split(records, out, _DATASET_FIELDS, DatasetError, "build")
+        if first.get("kind") != "dataset":
+            raise DatasetError(f"{next(iter(records))}: field 'kind' is {first.get('kind')!r}, expected 'dataset' "
+                               f"or 'capture'")
+        where = str(next(iter(records)))
+        _check_split(records, count)
+        if source is None:
+            source = reopen_source(first.get("origin"), where)
+        from ._sources import as_source
+
+        source = as_source(source)
+        if source.fingerprint() != first.get("source"):
+            raise DatasetError(f"{getattr(source, 'where', source)}: the source differs from the one the shards were "
+                               f"built from ({where}: field 'source'); merge with the capture they were built from")
+        options = _options_of(first, where)
+        if first.get("layout_version") != LAYOUT_VERSION:
+            raise DatasetError(f"{where}: field 'layout_version' is {first.get('layout_version')!r}, this jaxfish writes "
+                               f"{LAYOUT_VERSION}: build the shards again")
+        frames = {int(s) for s in first["requested"]}
+        _check_samples(out, first["requested"], options, source, frames, verify, records)
+        finish_dataset(source, out, options)
+        remove_stale_temporaries(out)
+        remove_shard_records(out)
+        return MergeReport(out, "dataset", count, tuple(first["requested"]))
+
+
+def _check_split(records: dict[Path, dict[str, Any]], count: int) -> None:
+    """Every record lists the samples the rule gives its shard of the requested ones."""
+    for path, doc in records.items():
+        requested, samples = doc.get("requested"), doc.get("samples", doc.get("frames"))
+        for field, value in (("requested", requested), ("samples", samples)):
+            if not isinstance(value, list) or not all(_is_id(v) for v in value):
+                raise DatasetError(f"{path}: field {field!r}: expected a list of sample ids")
+        try:
+            expect = Shard(doc["shard"][0], count).select([int(v) for v in requested])
+        except ValueError:
+            raise DatasetError(f"{path}: field 'requested': expected a list of sample ids") from None
+        if [int(v) for v in samples] != expect:
+            raise DatasetError(f"{path}: field 'samples' is not shard {doc['shard'][0]}/{count} of field 'requested' "
+                               f"(the shards' rule: the k-th sorted frame goes to shard k mod N)")
+
+
+def _is_id(value: Any) -> bool:
+    """A sample id (``"00001"``, `sample_id`) or a frame number (a capture shard's)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value >= 0
+    return isinstance(value, str) and value.isascii() and value.isdigit() and sample_id(int(value)) == value
+
+
+def _options_of(record: dict[str, Any], where: str) -> BuildOptions:
+    opts = record.get("options")
+    if not isinstance(opts, dict):
+        raise DatasetError(f"{where}: field 'options': expected an object")
+    try:
+        return BuildOptions(**{k: opts[k] for k in ("backward_flow", "bev", "motion_threshold_m", "png_level")})
+    except (KeyError, TypeError) as e:
+        raise DatasetError(f"{where}: field 'options' is malformed ({type(e).__name__}: {e})") from None
+
+
+def _check_samples(out: Path, requested: list[str], options: BuildOptions, source, frames: set[int], verify: bool,
+                   records: dict[Path, dict[str, Any]]) -> None:
+    """Every requested sample complete and made by this build; every other marker too."""
+    owner = {s: path.name for path, doc in records.items() for s in doc["samples"]}
+    wanted, capture = options.to_dict(), source.fingerprint()
+    incomplete: list[str] = []
+    for sid in requested:
+        if not is_complete(out, sid):
+            incomplete.append(sid)
+    if incomplete:
+        raise DatasetError(f"{out}: sample(s) {sample_span(incomplete)} listed by {owner[incomplete[0]]} are not "
+                           f"complete (no valid {DONE_DIR}/{incomplete[0]}.json, or a file it lists is missing): run "
+                           f"that shard's build again")
+    done = out / DONE_DIR
+    for marker in sorted(done.glob("*.json")) if done.is_dir() else []:
+        try:
+            doc = json.loads(marker.read_text())
+        except (OSError, ValueError):
+            if marker.stem in owner:  # pragma: no cover - is_complete read it a moment ago
+                raise DatasetError(f"{marker}: not a readable completion marker") from None
+            continue
+        if not isinstance(doc, dict) or doc.get("layout_version") != LAYOUT_VERSION:
+            continue  # another layout version: rebuilt by the next build, not listed
+        diffs = marker_differences(doc, wanted, capture, source, frames)
+        if diffs:
+            raise DatasetError(f"{marker}: sample {marker.stem} was made from another capture or with other options "
+                               f"than the shards ({'; '.join(diffs)}): rebuild it (jaxfish build --rebuild ...)")
+        if verify and marker.stem in owner:
+            for rel, digest in doc.get("files", {}).items():
+                if sha256_file(out / rel) != digest:
+                    raise DatasetError(f"{out / rel}: its SHA-256 differs from {marker}'s field 'files': the file "
+                                       f"changed after its sample was built; rebuild sample {marker.stem}")
+
+
+# ------------------------------------------------------------------------------------ captures
+def merge_capture_shards(root: Path, records: dict[Path, dict[str, Any]]) -> MergeReport:
+    """Finish a capture whose frames ``jaxfish synth --shard I/N`` runs rendered: check the
+    records (as `merge_shards`) and that every frame folder they list is still what its shard
+    wrote (`frame_fingerprint`), then list the frames in ``capture.json`` (the bytes one
+    ``jaxfish synth`` writes) and remove the shard records. Call it holding the folder's lock."""
+    from ..io import CaptureError, list_capture_frames
+    from ._fingerprint import frame_fingerprint
+
+    count, first = check_same_split(records, root, _CAPTURE_FIELDS, DatasetError, "synth")
+    _check_split(records, count)
+    header = root / "capture.json"
+    if not header.is_file():
+        raise DatasetError(f"{header}: missing (every shard writes it): run the shards again")
+    for path, doc in records.items():
+        prints = doc.get("frame_fingerprints")
+        if not isinstance(prints, dict):
+            raise DatasetError(f"{path}: field 'frame_fingerprints': expected an object")
+        for f in doc["samples"]:
+            if prints.get(str(f)) != frame_fingerprint(root, int(f)):
+                raise DatasetError(f"{root / 'frames' / f'{int(f):06d}'}: differs from what shard {path.stem} wrote "
+                                   f"({path}: field 'frame_fingerprints'): run that shard again")
+    frames = sorted(int(f) for f in first["requested"])
+    try:
+        list_capture_frames(root, frames)
+    except CaptureError as e:
+        raise DatasetError(str(e)) from None
+    from ..io._folder import remove_temporaries
+
+    remove_temporaries(root)
+    remove_shard_records(root)
+    return MergeReport(root, "capture", count, tuple(sample_id(f) for f in frames))
+
+
+__all__ = ["SHARDS_DIR", "MergeReport", "merge_shards", "merge_capture_shards"]
