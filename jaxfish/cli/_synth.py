@@ -26,6 +26,9 @@ def synth(
     bev_size: int = typer.Option(1024, "--bev-size", help="BEV top-view image size in pixels."),
     front_width: int = typer.Option(1632, "--front-width", help="Front perspective camera width (4:3)."),
     dvs_substeps: int = typer.Option(4, "--dvs-substeps", help="Sub-frames between t-1 and t for DVS events."),
+    texture: bool = typer.Option(False, "--texture", help="Give every material procedural surface detail (grain, "
+                                 "blotches, colour variation): RGB with the PNG statistics of a CARLA render, "
+                                 "for realistic benchmarks. Labels, depth and motion are the same."),
 ) -> None:
     """Render the embedded procedural street scene as a CARLA-style capture (layout:
     docs/capture_layout.md), or with --build straight into a SynWoodScape-style dataset."""
@@ -55,7 +58,8 @@ def synth(
         rig = default_rig()
     warn_undersampled(face_size, {name: calib.camera for name, calib in rig.items()})
     config = CaptureConfig(face_size=face_size, bev_size=bev_size, front_width=front_width,
-                           front_height=max(1, round(front_width * 3 / 4)), dvs_substeps=dvs_substeps)
+                           front_height=max(1, round(front_width * 3 / 4)), dvs_substeps=dvs_substeps,
+                           textured=texture)
     start = time.perf_counter()
     if build is not None:
         from ..dataset import EmbeddedSource
