@@ -210,7 +210,7 @@ class _Decoded:
 
 
 def _replay_writes(files: dict[Path, bytes]) -> None:
-    from jaxfish.io._atomic import atomic_write_bytes
+    from jaxfish.io import atomic_write_bytes
 
     for path, data in files.items():
         atomic_write_bytes(path, data)
