@@ -1,17 +1,29 @@
 """Benchmark: the dataset builder on a full-size one-sample capture (4 fisheyes 1280 x 966 from
-768 px cube faces + BEV 1024 x 1024, all modalities, I/O included).
+768 px cube faces + BEV 1024 x 1024, all modalities, I/O included), on smooth and on textured content.
 
-Measures, after compilation: the serial rate (samples/s, the median of ``--repeat`` rebuilds into
-fresh directories), the peak resident memory of the process (``resource.getrusage``), and the rate
-of dask ``LocalCluster`` builds with 1 and 2 single-threaded process workers, each pinned to its
-share of the cores as `build_dataset` pins them (`jaxfish.dataset.share_cores`; each worker warms up
-on the sample first; then ``2 x workers`` builds of the sample run as separate tasks).
+The embedded scene's smooth materials compress to about 1 bit per pixel as PNG, a CARLA render to
+about 14: a benchmark on smooth content flatters every codec. ``--content both`` (the default)
+measures a capture of each (``CaptureConfig.textured``: surface detail with a CARLA render's PNG
+statistics), rendered in a child process when ``--capture`` / ``--textured-capture`` hold none.
 
-    uv run python scripts/bench_build.py                    # renders the capture first (minutes)
-    uv run python scripts/bench_build.py --capture out/cap  # reuse a full-size capture
-    uv run python scripts/bench_build.py --capture out/cap --no-dask --stages  # + each stage's wall / CPU time
+Per content it prints the RGB cube faces' bits per pixel (Up filter + zlib level 1, as jaxfish
+writes PNGs) next to the real SynWoodScape frame's (``../shared/samples/``; the textured faces must
+be within ±30 %), and a **stage table** (`measure_stages`, in a fresh process after a compiling
+round): CPU seconds per sample of decode, ground truth, BEV, encode and file system, their sum, the
+whole `build_sample` from the capture and from the decoded frame in memory, the 2-core bound each
+implies (2 / CPU-s samples/s) and the process's peak memory. Then, on the textured capture (the
+goals count on it), after compilation: the serial rate (samples/s, the median of ``--repeat``
+rebuilds into fresh directories), the peak resident memory of the process (``resource.getrusage``),
+and the rate of dask ``LocalCluster`` builds with 1 and 2 single-threaded process workers, each
+pinned to its share of the cores as `build_dataset` pins them (`jaxfish.dataset.share_cores`; each
+worker warms up on the sample first; then ``2 x workers`` builds of the sample run as separate tasks).
 
-Goal: >= 1 sample/s after compile, peak < 4 GB. Current figures: docs/performance.md.
+    uv run python scripts/bench_build.py                    # renders both captures first (minutes)
+    uv run python scripts/bench_build.py --capture out/cap --textured-capture out/cap-tex  # kept, reused
+    uv run python scripts/bench_build.py --scale 0.5 --tables-only  # half size, stage tables only
+
+Goals: <= 2.0 CPU-s per sample from the textured capture (>= 1 sample/s on two cores), <= 1.5 from
+memory, peak < 4 GB. Current figures: docs/performance.md.
 """
 
 from __future__ import annotations
@@ -81,74 +93,265 @@ def _cpu_s() -> float:
     return t.user + t.system
 
 
-def _run_jobs(jobs) -> list:
-    return [p for job in jobs for p in job()]
+CONTENTS = ("smooth", "textured")
+"""What a benchmark capture's RGB shows: the embedded scene's smooth materials, or its surface
+detail (`CaptureConfig.textured`: a CARLA render's PNG statistics)."""
+REAL_FRAME = Path(__file__).resolve().parents[1].parent / "shared" / "samples" / "synwoodscape_FV_rgb.png"
+"""The CARLA-rendered SynWoodScape front frame the textured faces are compared with."""
+MATCH = 0.30
+"""The textured faces' bits per pixel must be within this fraction of the real frame's."""
 
 
-def bench_stages(capture: Path, scratch: Path, repeat: int) -> None:
-    """Wall and CPU seconds (all threads) of each stage of a sample through the pipeline, run one
-    after the other: read the frame (decode), fisheye ground truth, fisheye files, BEV ground truth,
-    BEV files (`build_sample` writes in a pool of threads, so it takes less wall time than their sum,
-    but the same CPU time). The CPU seconds are the work per sample: a 2-core machine builds at most
-    2 / CPU samples per second, so 1 sample/s needs <= 2 CPU-s."""
+def capture_settings(scale: float, textured: bool):
+    """The benchmark capture's rig and `CaptureConfig` at ``scale`` (1: the default rig's 1280 x 966
+    fisheyes from 768 px cube faces, BEV 1024 px, as `CaptureConfig()`); smaller scales shrink every
+    image (the BEV keeps its ground coverage)."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from jaxfish import default_rig
+    from jaxfish.scene import CaptureConfig
+
+    rig, config = default_rig(), CaptureConfig(textured=textured)
+    if scale == 1.0:
+        return rig, config
+    rig = {k: v.resize(max(16, round(v.camera.width * scale)), max(12, round(v.camera.height * scale))).astype(jnp.float32)
+           for k, v in rig.items()}
+    bev = max(16, round(config.bev_size * scale))
+    front = max(16, round(config.front_width * scale))
+    return rig, dataclasses.replace(config, face_size=max(16, round(config.face_size * scale)), bev_size=bev,
+                                    bev_metres_per_pixel=config.bev_metres_per_pixel * config.bev_size / bev,
+                                    front_width=front, front_height=max(12, round(front * 3 / 4)))
+
+
+def render_capture(path: str, scale: float, textured: bool) -> float:
+    """Render frame 0 of seed 0 into ``path`` (run in a child process: its memory is not the
+    builder's); returns the seconds it took."""
+    from jaxfish.dataset import synthesize_capture
+
+    rig, config = capture_settings(scale, textured)
+    start = time.perf_counter()
+    synthesize_capture(path, rig, frames=1, seed=0, config=config)
+    return time.perf_counter() - start
+
+
+def in_child(fn, *args):
+    """``fn(*args)`` in a fresh process (spawned: its own JAX, compilations and peak memory)."""
+    import concurrent.futures
+    import multiprocessing
+
+    with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(fn, *args).result()
+
+
+def up_bits_per_pixel(rgb) -> float:
+    """Bits per pixel of an RGB image as jaxfish's PNGs store it: the "Up" row filter, then one zlib
+    stream at level 1 (the real frame is measured the same way)."""
+    import zlib
+
+    import numpy as np
+
+    a = np.ascontiguousarray(rgb, np.uint8)
+    rows = a.reshape(a.shape[0], -1)
+    up = rows.copy()
+    up[1:] = rows[1:] - rows[:-1]
+    raw = np.concatenate([np.full((rows.shape[0], 1), 2, np.uint8), up], axis=1).tobytes()
+    return 8.0 * len(zlib.compress(raw, 1)) / (a.shape[0] * a.shape[1])
+
+
+def face_bits_per_pixel(capture: Path) -> tuple[float, int]:
+    """Bits per pixel of every RGB cube face at t of frame 0 (all faces' bytes over all their
+    pixels), and how many faces."""
+    from jaxfish.io import read_image
+
+    bits = pixels = 0.0
+    faces = sorted((capture / "frames" / "000000" / "cameras").glob("*/*/rgb_curr.png"))
+    for path in faces:
+        bgr = read_image(path)[..., 2::-1]  # CARLA BGRA -> RGB
+        bits += up_bits_per_pixel(bgr) * bgr.shape[0] * bgr.shape[1]
+        pixels += bgr.shape[0] * bgr.shape[1]
+    return bits / max(pixels, 1.0), len(faces)
+
+
+def report_bits_per_pixel(content: str, capture: Path) -> None:
+    """Print the capture's RGB faces' bits per pixel next to the real frame's (Up + zlib level 1)."""
+    from jaxfish.io import read_image
+
+    faces, n = face_bits_per_pixel(capture)
+    line = f"{content}: {n} RGB cube faces at t take {faces:.2f} bits/px (Up filter + zlib level 1)"
+    if REAL_FRAME.is_file():
+        real = up_bits_per_pixel(read_image(REAL_FRAME)[..., :3])
+        ratio = faces / real
+        verdict = "within" if abs(ratio - 1.0) <= MATCH else "OUTSIDE"
+        line += (f"; the real SynWoodScape frame {real:.2f} bits/px: ratio {ratio:.2f}, {verdict} "
+                 f"±{MATCH:.0%}" + ("" if content == "textured" else " (smooth content is not meant to match)"))
+    else:
+        line += f"; the real frame ({REAL_FRAME}) is missing"
+    print(line, flush=True)
+
+
+STAGES = ("decode", "ground truth", "BEV", "encode", "file system")
+"""The stage table's rows, in pipeline order."""
+
+
+class _Decoded:
+    """A source that hands over one frame already decoded (an in-memory source: no capture
+    decode); everything else is the wrapped source's."""
+
+    def __init__(self, source, frame):
+        self._source, self._frame = source, frame
+
+    def __getattr__(self, name):
+        return getattr(self._source, name)
+
+    def read(self, index: int, *, bev: bool = True):
+        return self._frame
+
+
+def _replay_writes(files: dict[Path, bytes]) -> None:
+    from jaxfish.io import atomic_write_bytes
+
+    for path, data in files.items():
+        atomic_write_bytes(path, data)
+
+
+def measure_stages(capture: str, scratch: str, repeat: int) -> dict:
+    """CPU seconds per sample (``time.process_time``: this process, every thread) of each stage of a
+    sample of ``capture``, run one after the other around the pipeline's own calls (median of
+    ``repeat`` after a round that compiles):
+
+    - decode: `CaptureSource.read` (every image decoded: ``reuse_decoded=False``);
+    - ground truth: `sample_truth` of the fisheye cameras (``bev=False``);
+    - BEV: `bev_truth`;
+    - encode: `LayoutSink.write` of every file of the sample, less the file system's share;
+    - file system: the same files' bytes written again the way jaxfish writes a file
+      (`atomic_write_bytes`: a temporary file, its bytes, chmod, rename; the builder calls no fsync).
+
+    First (median of ``repeat`` after a compiling round) the whole `build_sample` (thread pool,
+    SHA-256 of every file and the marker included), from the capture and from the decoded frame
+    handed over in memory, and the process's peak RSS after them (compilation included; not the
+    stage runs', which hold a sample's files in memory). Run it in a fresh process (`in_child`)."""
     import jax
 
-    from jaxfish.dataset import CaptureSource, LayoutSink, rig_constants_of
-    from jaxfish.pipeline import GroundTruthOptions, SampleTruth, bev_truth, sample_truth
+    from jaxfish.dataset import BuildOptions, CaptureSource, LayoutSink, build_sample, rig_constants_of
+    from jaxfish.pipeline import SampleTruth, bev_truth, sample_truth
 
     source = CaptureSource(capture, reuse_decoded=False)
-    constants = rig_constants_of(source)  # the per-calibration constants a build keeps per process
-    options = GroundTruthOptions(bev=False)
-    stages: dict[str, list[tuple[float, float]]] = {}
+    options = BuildOptions().ground_truth()
+    fisheye_options = type(options)(backward_flow=options.backward_flow, motion_threshold_m=options.motion_threshold_m,
+                                    bev=False)
+    constants = rig_constants_of(source)
+    root = Path(scratch)
+    runs: dict[str, list[float]] = {}
 
     def timed(name, fn, *args):
-        w, c = time.perf_counter(), _cpu_s()
+        c = time.process_time()
         result = jax.block_until_ready(fn(*args))
-        stages.setdefault(name, []).append((time.perf_counter() - w, _cpu_s() - c))
+        runs.setdefault(name, []).append(time.process_time() - c)
         return result
 
-    for i in range(repeat + 1):  # the first round compiles
+    decoded = source.read(0)
+    for i in range(repeat + 1):  # the whole builds first (their peak memory); the first round compiles
+        for name, src in (("total", source), ("in memory", _Decoded(source, decoded))):
+            c = time.process_time()
+            build_sample(src, root / f"build{i}", 0)
+            runs.setdefault(name, []).append(time.process_time() - c)
+            shutil.rmtree(root / f"build{i}")
+    builds = {name: runs[name][1:] or runs[name] for name in ("total", "in memory")}  # without the compiling round
+    runs.clear()
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    for i in range(repeat + 1):  # the first round compiles the stages' own programs
         if i == 1:
-            stages.clear()
-        out = scratch / f"stages{i}"
-        sink = LayoutSink(out)
-        frame = timed("read the frame (decode faces, BEV, sensors)", source.read, 0)
-        truth = timed("fisheye ground truth + events + renderings", sample_truth, frame, constants, options)
-        timed("write the fisheye and per-sample files (inline)", sink.write, "00000", truth)
-        if frame.bev is not None:
-            bev = timed("BEV ground truth", bev_truth, frame, constants, GroundTruthOptions())
-            bev_only = SampleTruth(index=truth.index, cameras=(), bev=bev, motion=truth.motion,
-                                   displacement_m=truth.displacement_m, corners_world=truth.corners_world,
-                                   corners_vehicle=truth.corners_vehicle, sensors=truth.sensors)
-            timed("write the BEV files (inline)", _run_jobs, sink.jobs("00000", bev_only)[:-2])  # the BEV's only
+            runs.clear()
+        frame = timed("decode", source.read, 0)
+        truth = timed("ground truth", sample_truth, frame, constants, fisheye_options)
+        bev = timed("BEV", bev_truth, frame, constants, options) if frame.bev is not None else None
+        full = SampleTruth(index=truth.index, cameras=truth.cameras, bev=bev, motion=truth.motion,
+                           displacement_m=truth.displacement_m, corners_world=truth.corners_world,
+                           corners_vehicle=truth.corners_vehicle, sensors=truth.sensors)
+        out = root / f"stages{i}"
+        paths = timed("sink", LayoutSink(out).write, "00000", full)
+        files = {root / f"replay{i}" / p.relative_to(out): p.read_bytes() for p in paths}
         shutil.rmtree(out)
-    print(f"stages of one sample, run one after the other (median of {repeat}; wall / CPU seconds):")
-    for name, runs in stages.items():
-        wall, cpu = statistics.median(r[0] for r in runs), statistics.median(r[1] for r in runs)
-        print(f"  {name:52s} {wall:5.2f} / {cpu:5.2f}")
-    total = sum(statistics.median(r[1] for r in runs) for runs in stages.values())
-    print(f"  CPU per sample: {total:.2f} s = a 2-core bound of {2 / total:.2f} samples/s; "
-          f"1 sample/s needs <= 2.00 CPU-s")
+        timed("file system", _replay_writes, files)
+        shutil.rmtree(root / f"replay{i}")
+    med = {name: statistics.median(v) for name, v in {**runs, **builds}.items()}
+    med["encode"] = max(med.pop("sink") - med["file system"], 0.0)
+    med["peak_mb"] = peak_mb
+    med["files"] = len(paths)
+    med["mb"] = sum(len(b) for b in files.values()) / 2**20
+    return med
+
+
+def print_stage_table(content: str, stages: dict, repeat: int) -> None:
+    """The stage table of one content: CPU seconds per sample and the 2-core bound they imply."""
+    def bound(cpu: float) -> str:
+        return f"{2.0 / cpu:5.2f}" if cpu > 0 else "  inf"
+
+    print(f"stage table, {content} capture ({stages['files']} files, {stages['mb']:.0f} MB per sample; "
+          f"CPU seconds per sample, median of {repeat}; 2-core bound = 2 / CPU-s samples/s):")
+    print(f"  {'stage':46s} {'CPU-s':>6s}")
+    for name in STAGES:
+        print(f"  {name:46s} {stages[name]:6.2f}")
+    total = sum(stages[name] for name in STAGES)
+    print(f"  {'sum of the stages':46s} {total:6.2f}   2-core bound {bound(total)} samples/s")
+    print(f"  {'build_sample from the capture (total)':46s} {stages['total']:6.2f}   2-core bound "
+          f"{bound(stages['total'])} samples/s (goal <= 2.00 CPU-s)")
+    print(f"  {'build_sample from memory (no decode)':46s} {stages['in memory']:6.2f}   2-core bound "
+          f"{bound(stages['in memory'])} samples/s (goal <= 1.50 CPU-s)")
+    print(f"  peak memory of the builds (compilation included): {stages['peak_mb']:.0f} MB (goal < 4096)", flush=True)
+
+
+def prepare_captures(args, scratch: Path) -> dict[str, Path]:
+    """``{content: capture}`` for ``--content``: ``--capture`` (smooth) and ``--textured-capture``
+    when they hold a capture, else rendered there (or in ``scratch``) in a child process."""
+    wanted = CONTENTS if args.content == "both" else (args.content,)
+    given = {"smooth": args.capture, "textured": args.textured_capture}
+    captures = {}
+    for content in wanted:
+        path = given[content]
+        if path is None or not (path / "capture.json").is_file():
+            path = path or scratch / f"capture-{content}"
+            seconds = in_child(render_capture, str(path), args.scale, content == "textured")
+            print(f"rendered the {content} capture (scale {args.scale:g}) in {seconds:.1f} s: {path}", flush=True)
+        captures[content] = path
+    return captures
+
+
+def report_contents(captures: dict[str, Path], scratch: Path, repeat: int) -> None:
+    """Per content: the RGB faces' bits per pixel against the real frame's, then the stage table."""
+    print(f"load average before the stage tables: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    for content, capture in captures.items():
+        report_bits_per_pixel(content, capture)
+        work = scratch / f"stages-{content}"
+        work.mkdir(parents=True, exist_ok=True)
+        print_stage_table(content, in_child(measure_stages, str(capture), str(work), repeat), repeat)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--capture", type=Path, default=None, help="full-size capture with frame 0 (rendered if absent)")
+    parser.add_argument("--capture", type=Path, default=None,
+                        help="smooth capture with frame 0 (rendered there if absent; default: a temporary one)")
+    parser.add_argument("--textured-capture", type=Path, default=None,
+                        help="textured capture with frame 0 (rendered there if absent; default: a temporary one)")
+    parser.add_argument("--content", choices=("smooth", "textured", "both"), default="both",
+                        help="which captures to measure (default both)")
+    parser.add_argument("--scale", type=float, default=1.0,
+                        help="size of rendered captures (1: full size, fisheyes 1280 x 966 from 768 px faces)")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--no-dask", action="store_true")
-    parser.add_argument("--stages", action="store_true", help="also time each stage of a sample (wall and CPU)")
+    parser.add_argument("--tables-only", action="store_true",
+                        help="only the bits per pixel and the stage tables (no serial build_dataset or dask rates)")
     args = parser.parse_args()
     scratch = Path(tempfile.mkdtemp(prefix="jaxfish_bench_build_"))
     try:
-        capture = args.capture
-        if capture is None or not (capture / "capture.json").is_file():
-            from jaxfish import default_rig
-            from jaxfish.dataset import synthesize_capture
-
-            capture = capture or scratch / "capture"
-            t = time.perf_counter()
-            synthesize_capture(capture, default_rig(), frames=1, seed=0)
-            print(f"rendered the full-size capture in {time.perf_counter() - t:.1f} s")
+        captures = prepare_captures(args, scratch)
+        report_contents(captures, scratch, args.repeat)
+        if args.tables_only:
+            return
+        capture = captures.get("textured", captures.get("smooth"))  # the goals count on textured content
+        print(f"serial and dask builds of {capture}:")
         from jaxfish.dataset import build_dataset
 
         t = time.perf_counter()
@@ -174,8 +377,6 @@ def main() -> None:
               f"{statistics.median(cpus) / med:.2f} cores busy on average; a {os.cpu_count()}-core bound of "
               f"{os.cpu_count() / statistics.median(cpus):.2f} samples/s at this work per sample")
         print(f"peak memory (this process): {_peak_mb():.0f} MB")
-        if args.stages:
-            bench_stages(capture, scratch, args.repeat)
         if not args.no_dask:
             for n in (1, 2):
                 rate, warm_s, peaks = bench_dask(capture, scratch, n)

@@ -29,6 +29,9 @@ def synth(
     shard: str | None = typer.Option(None, "--shard", metavar="I/N", help="Render (or with --build, build) only "
                                      "shard I of N of the frames (frame k when k mod N = I), then `jaxfish merge` the "
                                      "folder; default: the SLURM job array's task when set; 'all': every frame."),
+    texture: bool = typer.Option(False, "--texture", help="Give every material procedural surface detail (grain, "
+                                 "blotches, colour variation): RGB with the PNG statistics of a CARLA render, "
+                                 "for realistic benchmarks. Labels, depth and motion are the same."),
 ) -> None:
     """Render the embedded procedural street scene as a CARLA-style capture (layout:
     docs/capture_layout.md), or with --build straight into a SynWoodScape-style dataset. Every
@@ -62,7 +65,8 @@ def synth(
         rig = default_rig()
     warn_undersampled(face_size, {name: calib.camera for name, calib in rig.items()})
     config = CaptureConfig(face_size=face_size, bev_size=bev_size, front_width=front_width,
-                           front_height=max(1, round(front_width * 3 / 4)), dvs_substeps=dvs_substeps)
+                           front_height=max(1, round(front_width * 3 / 4)), dvs_substeps=dvs_substeps,
+                           textured=texture)
     start = time.perf_counter()
     if build is not None:
         from ..dataset import EmbeddedSource

@@ -373,7 +373,10 @@ class EmbeddedSource:
 
         from ..io._json import to_json_text
 
-        settings = {"source": "embedded", "seed": self.seed, "config": dataclasses.asdict(self.config)}
+        config = dataclasses.asdict(self.config)
+        if not config["textured"]:  # the smooth scene's settings do not name the option: stable fingerprints
+            del config["textured"]
+        settings = {"source": "embedded", "seed": self.seed, "config": config}
         parts = {"embedded": _sha(to_json_text("<memory>", _json_copy(settings), sort_keys=True).encode())}
         for n in sorted(self.cameras):
             parts[f"calibration/{n}.json"] = _sha(self.calibration_bytes(n))  # as a capture's file_key
@@ -422,7 +425,7 @@ class EmbeddedSource:
 
         if index not in self.frames:
             raise CaptureError(f"{self.where}: frame {index} is not one of its {len(self.frames)} frames")
-        street = generate_street(self.seed, frame=int(index), rig=self.render_rig)
+        street = generate_street(self.seed, frame=int(index), rig=self.render_rig, textured=self.config.textured)
         faces = self.faces
 
         def quantised(img) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

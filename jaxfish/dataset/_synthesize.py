@@ -117,7 +117,7 @@ def _synthesize_locked(root: Path, rig: Mapping[str, Calibration], frames: list[
     bev, front = bev_camera(config), front_camera(config)
     tick = progress or (lambda _msg: None)
     for k in frames:
-        frame = generate_street(seed, frame=k, rig=rig)
+        frame = generate_street(seed, frame=k, rig=rig, textured=config.textured)
         cams = {}
         for name, calib in rig.items():
             cams[name] = simulate_camera(frame, calib, config)

@@ -59,3 +59,7 @@ from ._sensors import simulate_radar as simulate_radar
 from ._sensors import simulate_view as simulate_view
 from ._sensors import to_uint8 as to_uint8
 from ._tags import CARLA_SEMANTIC_TAGS as CARLA_SEMANTIC_TAGS
+from ._texture import MATERIAL_TABLE as MATERIAL_TABLE
+from ._texture import sky_detail as sky_detail
+from ._texture import surface_detail as surface_detail
+from ._texture import surface_uv as surface_uv

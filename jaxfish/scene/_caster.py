@@ -27,6 +27,7 @@ from ._model import (
     Scene,
 )
 from ._tags import CARLA_SEMANTIC_TAGS as TAGS
+from ._texture import hash_u32, sky_detail, surface_detail, surface_uv
 
 FAR_M = FAR_DEPTH_M
 """Far plane (metres), `jaxfish.reprojection.FAR_DEPTH_M`: no hit beyond it; sky and far pixels
@@ -358,10 +359,17 @@ def _cast_chunk(scene: Scene, posed: _Posed, o: Float[Array, "C 3"], d: Float[Ar
     prim_albedo = jnp.where(is_box[:, None], scene.box_albedo[bi], scene.capsule_albedo[ki]) * tex[:, None]
     gnd_tag, gnd_albedo = ground_semantic_and_albedo(scene, p[:, :2])
     albedo = jnp.where(is_gnd[:, None], gnd_albedo, prim_albedo)
-    shade = 0.4 + 0.6 * jnp.maximum(jnp.sum(n_world * scene.sun_direction, axis=-1), 0.0)
-    rgb = jnp.where(hit[:, None], albedo * shade[:, None], sky_rgb(d))
-
     prim_tag = jnp.where(is_box, scene.box_tag[bi], scene.capsule_tag[ki])
+    if scene.textured:  # static: the smooth scene compiles without it
+        uv = jnp.where(is_gnd[:, None], p[:, :2], surface_uv(q, n_local))
+        salt = hash_u32(scene.texture_seed + idx.astype(jnp.uint32) * jnp.uint32(0x9E3779B9))
+        albedo = albedo * surface_detail(uv, jnp.where(is_gnd, gnd_tag, prim_tag), salt).astype(o.dtype)
+    shade = 0.4 + 0.6 * jnp.maximum(jnp.sum(n_world * scene.sun_direction, axis=-1), 0.0)
+    sky = sky_rgb(d)
+    if scene.textured:
+        sky = sky * sky_detail(d, scene.texture_seed).astype(o.dtype)
+    rgb = jnp.where(hit[:, None], albedo * shade[:, None], sky)
+
     semantic = jnp.where(hit, jnp.where(is_gnd, gnd_tag, prim_tag), TAGS["sky"])
     obj = jnp.where(is_box, scene.box_object[bi], scene.capsule_object[ki])
     obj = jnp.where(hit & ~is_gnd, obj, -1)

@@ -24,6 +24,7 @@ from ._model import (
     StreetFrame,
 )
 from ._tags import CARLA_SEMANTIC_TAGS as TAGS
+from ._texture import seed_u32
 
 DEFAULT_DT_S = 0.1
 """Frame interval of a capture (seconds): 10 FPS as SynWoodScape."""
@@ -253,7 +254,7 @@ class _World:
             next_id += 1
 
     # --------------------------------------------------------------------------------- evaluation
-    def frame(self, frame: int, dt_s: float) -> StreetFrame:
+    def frame(self, frame: int, dt_s: float, textured: bool = False) -> StreetFrame:
         t_prev = _T0_S + frame * dt_s
         t_curr = t_prev + dt_s
         n_obj = len(self.movers) + 1
@@ -265,7 +266,7 @@ class _World:
                 loc[k, i + 1], yaw[k, i + 1] = p, y
         actor_ids = np.zeros(n_obj, np.int32)
         actor_ids[1:] = [m.actor_id for m in self.movers]
-        scene = self._scene(loc, yaw, actor_ids, dt_s)
+        scene = self._scene(loc, yaw, actor_ids, dt_s, textured)
         actors = []
         h = 1e-3
         for i, m in enumerate(self.movers):
@@ -310,7 +311,7 @@ class _World:
             lo, hi = np.minimum(lo, c - h), np.maximum(hi, c + h)
         return _tup((lo + hi) / 2), _tup((hi - lo) / 2)
 
-    def _scene(self, loc: np.ndarray, yaw: np.ndarray, actor_ids: np.ndarray, dt_s: float) -> Scene:
+    def _scene(self, loc: np.ndarray, yaw: np.ndarray, actor_ids: np.ndarray, dt_s: float, textured: bool) -> Scene:
         f32 = jnp.float32
         boxes = [p for p in self.prims if p.kind == "box"]
         caps = [p for p in self.prims if p.kind == "capsule"]
@@ -348,7 +349,7 @@ class _World:
             capsule_active=jnp.asarray(k["active"]),
             road_half_width=jnp.asarray(_ROAD_HALF_WIDTH, f32), lane_width=jnp.asarray(_LANE_WIDTH, f32),
             sidewalk_width=jnp.asarray(_SIDEWALK_WIDTH, f32), sun_direction=jnp.asarray(sun / np.linalg.norm(sun), f32),
-            dt_s=float(dt_s),
+            dt_s=float(dt_s), textured=bool(textured), texture_seed=jnp.asarray(seed_u32(self.seed)),
         )
 
 
@@ -366,6 +367,7 @@ def generate_street(
     n_vehicles: int = 12,
     n_two_wheelers: int = 3,
     n_pedestrians: int = 10,
+    textured: bool = False,
 ) -> StreetFrame:
     """The embedded street scene of ``seed`` at frame ``frame`` (poses at t-1 and t, ``dt_s`` apart).
 
@@ -375,10 +377,12 @@ def generate_street(
     parked cars, two-wheelers in the lanes, walking and standing pedestrians on the sidewalks.
     ``rig`` sizes the ego body so that every camera of the rig is outside it (default: jaxfish's rig
     proportions). Successive frames continue the same motion (frame k's t is frame k+1's t-1).
+    ``textured`` gives every material surface detail (`Scene`, `surface_detail`) seeded by
+    ``seed``; the geometry, labels and motion do not depend on it.
     """
     if frame < 0:
         raise ValueError(f"generate_street: frame must be >= 0, got {frame}")
     if dt_s <= 0:
         raise ValueError(f"generate_street: dt_s must be positive, got {dt_s}")
     world = _World(int(seed), rig, n_vehicles=n_vehicles, n_two_wheelers=n_two_wheelers, n_pedestrians=n_pedestrians)
-    return world.frame(int(frame), float(dt_s))
+    return world.frame(int(frame), float(dt_s), bool(textured))

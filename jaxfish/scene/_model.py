@@ -18,7 +18,7 @@ import math
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int, UInt32
 
 from ..transforms import CARLA_TO_ISO, Pose
 
@@ -51,6 +51,11 @@ class Scene(eqx.Module):
     line at y = 0 and dashed lane lines every ``lane_width``, sidewalks up to
     ``road_half_width + sidewalk_width``, terrain beyond. ``sun_direction`` (unit, world, pointing
     to the sun) shades every surface.
+
+    ``textured`` (static) adds surface detail to every material (`jaxfish.scene.surface_detail`:
+    grain, blotches and colour variation, a pure function of the surface point, ``texture_seed``
+    and the material), for renders with the pixel statistics of a CARLA render; off, renders are
+    the smooth procedural materials alone.
     """
 
     object_location: Float[Array, "2 O 3"]
@@ -79,6 +84,8 @@ class Scene(eqx.Module):
     sidewalk_width: Float[Array, ""]
     sun_direction: Float[Array, " 3"]
     dt_s: float = eqx.field(static=True, default=0.1)
+    textured: bool = eqx.field(static=True, default=False)
+    texture_seed: UInt32[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros((), jnp.uint32))
 
     def __check_init__(self):
         groups = {

@@ -44,7 +44,9 @@ DVS_DTYPE = DVS_EVENT_DTYPE
 class CaptureConfig:
     """What a capture frame renders and how (every size in pixels, distances in metres, angles in
     degrees). Defaults follow SynWoodScape (5 faces per camera, BEV 1024 px) and CARLA's sensor
-    defaults (DVS C = 0.3, log eps 1e-3)."""
+    defaults (DVS C = 0.3, log eps 1e-3). ``textured`` renders the scene with surface detail
+    (``generate_street(..., textured=True)``: RGB with the pixel statistics of a CARLA render; labels,
+    depth and motion unchanged); off by default."""
 
     face_size: int = 768
     faces: tuple[str, ...] = FIVE_FACES
@@ -67,6 +69,7 @@ class CaptureConfig:
     radar_vertical_fov_deg: float = 10.0
     radar_range_m: float = 100.0
     chunk_size: int = DEFAULT_CHUNK
+    textured: bool = False
 
     def __post_init__(self):
         for name in ("face_size", "bev_size", "front_width", "front_height", "lidar_channels",
@@ -75,6 +78,8 @@ class CaptureConfig:
                 raise ValueError(f"CaptureConfig.{name} must be positive, got {getattr(self, name)}")
         if self.dvs_threshold <= 0:
             raise ValueError(f"CaptureConfig.dvs_threshold must be positive, got {self.dvs_threshold}")
+        if not isinstance(self.textured, bool):
+            raise ValueError(f"CaptureConfig.textured must be True or False, got {self.textured!r}")
 
 
 @dataclasses.dataclass(frozen=True)
