@@ -301,19 +301,17 @@ class WoodScapeFisheye(AbstractCamera):
         Newton solve that did not converge. Invalid rays are finite placeholders.
         """
         uv, dtype = as_coordinates(uv, 2, "WoodScapeFisheye.unproject: uv")
-        # Per coordinate plane throughout: XLA on CPU does not vectorise reductions or
-        # concatenations over a minor axis of size 2 or 3 (`finite_pixels`, `finite_or_invalid`).
-        u, v = uv[..., 0], uv[..., 1]
-        finite = jnp.isfinite(u) & jnp.isfinite(v)  # a non-finite pixel becomes (0, 0): no NaN in gradients
-        u = jnp.where(finite, u, 0.0)
-        v = jnp.where(finite, v, 0.0)
         k = self.k.astype(dtype)
         lens = k[..., 0] > 0  # k1 <= 0: no valid ray (solve a harmless lens instead of dividing by k1)
         k = jnp.where(lens, k, jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype))
         cx, cy = self._principal_point(dtype)
         a = self.aspect_ratio.astype(dtype)
-        x = u - cx
-        y = (v - cy) / a
+        # Per coordinate plane throughout: XLA on CPU does not vectorise reductions or
+        # concatenations over a minor axis of size 2 or 3 (`finite_pixels`, `finite_or_invalid`).
+        u, v = uv[..., 0], uv[..., 1]
+        finite = jnp.isfinite(u) & jnp.isfinite(v)  # a non-finite pixel becomes (0, 0): no NaN in gradients
+        x = jnp.where(finite, u, 0.0) - cx
+        y = (jnp.where(finite, v, 0.0) - cy) / a
         r2 = x * x + y * y
         measurable = jnp.isfinite(r2)  # squares overflow beyond ~1e19 px (float32): invalid, not NaN
         r2 = jnp.where(measurable, r2, 0.0)
@@ -325,13 +323,16 @@ class WoodScapeFisheye(AbstractCamera):
         # sin(θ)/rho = sinc(θ) / (rho(θ)/θ) at the root: smooth through the principal point, and no
         # per-pixel sine, cosine or division by rho (both series are exact to rounding on [0, pi]).
         s = _sinc(theta) / _rho_over_theta(k, theta)
-        c = _cos(theta)
-        ok = jnp.isfinite(x * s) & jnp.isfinite(y * s) & jnp.isfinite(c)
+        # A ray that is not finite (a degenerate lens) is invalid; the flag rides in the sign of
+        # s (never negative otherwise), so the ray below stays one branch-free, vectorised loop.
+        s = jnp.where(jnp.isfinite(x * s) & jnp.isfinite(y * s), s, -1.0)
+        ok = s >= 0
+        s = jnp.maximum(s, 0.0)
+        c = jnp.where(ok, _cos(theta), 0.0)
         # The ray as one elementwise loop over (..., 3), selecting its component by index: no
         # minor-axis concatenation (which XLA on CPU neither vectorises nor writes in place).
         j = jax.lax.broadcasted_iota(jnp.int32, (*rho.shape, 3), rho.ndim)
         ray = jnp.where(j == 2, c[..., None], jnp.where(j == 0, x[..., None], y[..., None]) * s[..., None])
-        ray = jnp.where(ok[..., None], ray, 0.0)
         return ray, inside & converged & measurable & finite & lens & ok
 
 
