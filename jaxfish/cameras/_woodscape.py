@@ -172,10 +172,10 @@ def solve_theta(
     ``rho(theta_max)`` gives ``theta_max``.
 
     Values from `_fast_theta` (a per-lens Chebyshev seed, `_NEWTON_STEPS` Newton steps: one in
-    float32, two in float64, and the residual check);
-    should the check fail anywhere (a lens whose rho flattens near ``theta_max``, where the seed is
-    poor), the whole batch is solved again by bisection (`_bisect`), under a ``lax.cond`` on
-    `all_of_batch`: the retry runs only when needed and stays a branch under ``vmap`` over cameras.
+    float32, two in float64, and the residual check); should the check fail anywhere (a lens whose
+    rho flattens near ``theta_max``, where the seed is poor), the whole batch is solved again by
+    bisection (`_bisect`), under a ``lax.cond`` on `all_of_batch`: the retry runs only when needed
+    and stays a branch under ``vmap`` over cameras.
     Values are computed on stopped-gradient inputs; gradients with respect to ``rho`` and ``k``
     are implicit (exact): `_implicit_theta`. Returns ``(theta, converged)``; `converged` is a
     per-element residual check, never a silent default.
