@@ -4,13 +4,17 @@ Run: ``uv run python scripts/bench_unproject.py [--calibration FV.json] [--sampl
 
 In one process: times the reference method on a random sample of pixels and extrapolates to the
 full frame, then times jaxfish's jitted ``WoodScapeFisheye.unproject`` of the whole frame (float32
-and float64; compile time reported separately) and prints the ratio. Goal (issue #2): >= 1000x in
-float32 after compile on a 2-core CPU, aiming at 5000x.
+and float64; compile time reported separately) and prints the ratio, the largest angle from the
+reference rays on the sampled pixels, and the full frame's round trip (``project`` of the rays,
+pixels). Goals: >= 5000x in float32 and >= 1000x in float64 after compile on a 2-core CPU, the
+float64 round trip within 1e-9 px. The load average is printed before and after: on a shared
+machine, compare ratios measured in the same process.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
@@ -50,6 +54,7 @@ def main() -> None:
     cx, cy = (float(c) for c in np.asarray(cam.principal_point))
     aspect = float(cam.aspect_ratio)
     print(f"calibration: {args.calibration or 'jaxfish default rig FV'} ({w}x{h}); devices: {jax.devices()}")
+    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
     rng = np.random.default_rng(0)
     sample = np.stack([rng.uniform(0, w - 1, args.sample), rng.uniform(0, h - 1, args.sample)], -1)
@@ -75,12 +80,18 @@ def main() -> None:
         rays, valid = fn(c, grid)
         got = np.asarray(jax.jit(lambda c, q: c.unproject(q))(c, jnp.asarray(sample, dtype))[0], dtype=np.float64)
         err = np.arctan2(np.linalg.norm(np.cross(got, ref), axis=-1), np.sum(got * ref, -1)).max()
+        back, _ = jax.jit(lambda c, r: c.project(r))(c, rays)
+        trip = float(jnp.max(jnp.where(valid[..., None], jnp.abs(back - grid), 0.0)))
         best, med = min(times), float(np.median(times))
-        rows.append((jnp.dtype(dtype).name, compile_s, best, med, t_ref_frame / med, err, float(np.mean(valid))))
-    print(f"\n{'dtype':8} {'compile s':>10} {'best ms':>9} {'median ms':>10} {'speed-up':>10} {'max angle err rad':>18} {'valid':>6}")
-    for name, comp, best, med, ratio, err, frac in rows:
-        print(f"{name:8} {comp:10.2f} {best * 1e3:9.2f} {med * 1e3:10.2f} {ratio:9.0f}x {err:18.2e} {frac:6.3f}")
-    print("\nspeed-up = reference full frame (extrapolated) / jaxfish median full frame, same process")
+        rows.append((jnp.dtype(dtype).name, compile_s, best, med, t_ref_frame / med, t_ref_frame / best, err, trip,
+                     float(np.mean(valid))))
+    print(f"\n{'dtype':8} {'compile s':>10} {'best ms':>9} {'median ms':>10} {'speed-up':>10} {'best':>8} "
+          f"{'max angle err rad':>18} {'round trip px':>14} {'valid':>6}")
+    for name, comp, best, med, ratio, ratio_best, err, trip, frac in rows:
+        print(f"{name:8} {comp:10.2f} {best * 1e3:9.2f} {med * 1e3:10.2f} {ratio:9.0f}x {ratio_best:7.0f}x "
+              f"{err:18.2e} {trip:14.2e} {frac:6.3f}")
+    print("\nspeed-up = reference full frame (extrapolated) / jaxfish median full frame, same process; best: the same over")
+    print(f"the fastest repeat. load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
 if __name__ == "__main__":

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import TypeVar
 
 import equinox as eqx
 import jax
@@ -13,6 +15,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_hypot
 from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, point_direction
 from ._domain import all_of_batch, first_increasing_limit
+
+T = TypeVar("T")
 
 THETA_MAX_MARGIN_RAD = 1e-3
 """When rho(theta) has a stationary point theta_s <= pi, the valid domain is [0, theta_s - margin]:
@@ -41,11 +45,12 @@ def theta_max_of(k: Float[Array, "4"]) -> Float[Array, ""]:
     return first_increasing_limit(drho_dtheta, k, k.dtype, margin=THETA_MAX_MARGIN_RAD)
 
 
-_SEED_DEGREE = {jnp.dtype(jnp.float32): 8, jnp.dtype(jnp.float64): 12}
+_SEED_DEGREE = {jnp.dtype(jnp.float32): 12, jnp.dtype(jnp.float64): 12}
 """Degree of the per-lens Chebyshev interpolant of theta(rho) that seeds the per-pixel Newton steps
-(1e-3 rad on SynWoodScape lenses at degree 8, 3e-5 at degree 12)."""
-_FAST_NEWTON_STEPS = 2
-"""Newton steps from the seed: the error squares with each (1e-3 -> 1e-7 -> 1e-14 rad)."""
+(3e-5 rad on SynWoodScape lenses; 1e-4 at degree 10, 1e-3 at degree 8)."""
+_NEWTON_STEPS = {jnp.dtype(jnp.float32): 1, jnp.dtype(jnp.float64): 2}
+"""Newton steps from the seed; the error squares with each (about 0.5 e**2 rad on SynWoodScape
+lenses): 3e-5 -> 1e-9 rad, below float32's resolution, in one step; -> 1e-18 in float64's second."""
 _NODE_BISECTIONS = 64
 """Bisection steps that place the interpolation nodes (exact to the last bit in float64)."""
 _RETRY_BISECTIONS = {jnp.dtype(jnp.float32): 40, jnp.dtype(jnp.float64): 72}
@@ -76,14 +81,29 @@ def _chebyshev_seed(k: Float[Array, "4"], rho_max: Float[Array, ""], theta_max: 
     return jnp.asarray(transform, dtype) @ (0.5 * (lo + hi))
 
 
-def _clenshaw(coeffs: Float[Array, " n"], x: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
-    """``sum_j coeffs[j] T_j(x)`` (Clenshaw's recurrence, unrolled)."""
-    b1 = jnp.zeros_like(x)
-    b2 = jnp.zeros_like(x)
-    two_x = x + x
-    for j in range(coeffs.shape[0] - 1, 0, -1):
-        b1, b2 = coeffs[j] + two_x * b1 - b2, b1
-    return coeffs[0] + x * b1 - b2
+def _monomial(coeffs: Float[Array, " n"]) -> Float[Array, " n"]:
+    """The power-series coefficients of ``sum_j coeffs[j] T_j(x)`` (a fixed linear map; on
+    ``[-1, 1]`` and at degree 12 its rounding stays far below the seed's own error, also in
+    float32)."""
+    n = coeffs.shape[0]
+    basis = np.zeros((n, n))
+    for j in range(n):
+        basis[: j + 1, j] = np.polynomial.chebyshev.cheb2poly(np.eye(n)[j])[: j + 1]
+    return jnp.asarray(basis, coeffs.dtype) @ coeffs
+
+
+def _estrin(a: Float[Array, " n"], x: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+    """``sum_j a[j] x**j`` by Estrin's scheme: pairs, then pairs of pairs, so the dependency chain
+    is ``log2(n)`` multiply-adds deep instead of Horner's ``n`` (the per-pixel solve is bound by
+    that latency, not by the arithmetic)."""
+    terms = [a[j] for j in range(a.shape[0])]
+    power = x
+    while len(terms) > 1:
+        if len(terms) % 2:
+            terms.append(None)
+        terms = [lo if hi is None else lo + hi * power for lo, hi in zip(terms[::2], terms[1::2], strict=True)]
+        power = power * power
+    return terms[0] + jnp.zeros_like(x)
 
 
 def _checked(k, rho, theta) -> Array:
@@ -97,57 +117,35 @@ def _checked(k, rho, theta) -> Array:
 
 def _fast_theta(k, rho, theta_max) -> Array:
     """The root of ``rho(theta) = min(rho, rho(theta_max))`` from the per-lens Chebyshev seed
-    (`_chebyshev_seed`) and `_FAST_NEWTON_STEPS` clipped Newton steps: one fused, vectorised
-    elementwise pass, no sine or cosine; -1 where the result fails the residual check (`_checked`)."""
+    (`_chebyshev_seed`, evaluated as a power series by `_estrin`) and `_NEWTON_STEPS` clipped
+    Newton steps: one fused, vectorised elementwise pass, no sine or cosine; -1 where the result
+    fails the residual check (`_checked`)."""
     dtype = rho.dtype
     rho_max = rho_of_theta(k, theta_max)
-    coeffs = _chebyshev_seed(k, rho_max, theta_max)
+    coeffs = _monomial(_chebyshev_seed(k, rho_max, theta_max))
     scale = 2.0 / jnp.maximum(rho_max, jnp.finfo(dtype).tiny)
     target = jnp.minimum(rho, rho_max)
-    theta = jnp.clip(_clenshaw(coeffs, target * scale - 1.0), 0.0, theta_max)
+    theta = jnp.clip(_estrin(coeffs, target * scale - 1.0), 0.0, theta_max)
     tiny = jnp.asarray(eps_for(dtype), dtype) * k[0]
-    for _ in range(_FAST_NEWTON_STEPS):
+    for _ in range(_NEWTON_STEPS[jnp.dtype(dtype)]):
         step = (rho_of_theta(k, theta) - target) / jnp.maximum(drho_dtheta(k, theta), tiny)
         theta = jnp.clip(theta - step, 0.0, theta_max)
     return _checked(k, target, theta)
 
 
-def _solve_theta_values(k, rho, theta_max) -> Array:
-    """The root of ``rho(theta) = min(rho, rho(theta_max))`` on ``[0, theta_max]`` (values only, no
-    derivative), -1 where no root passed the residual check.
-
-    `_fast_theta` for every pixel; should any pixel fail its residual check (a lens whose rho
-    flattens near ``theta_max``, where the seed is poor), the whole batch is solved again by
-    bisection (`_bisect`), under a ``lax.cond`` on `all_of_batch`: the retry runs only when needed
-    and stays a branch under ``vmap`` over cameras. The cond also keeps the thetas in one buffer
-    (XLA would otherwise fuse the solve into each of its consumers). The retry is a plain
-    bisection rather than an iterative solver library: its few buffers keep the program's
-    temporaries small (on CPU, allocations above glibc's 32 MiB mmap limit are page-faulted
-    afresh on every call)."""
-    rho_max = rho_of_theta(k, theta_max)
-    theta = _fast_theta(k, rho, theta_max)
-
-    def retry():
-        target = jnp.minimum(rho, rho_max)
-        return _checked(k, target, _bisect(k, target, theta_max))
-
-    return jax.lax.cond(all_of_batch(theta >= 0), lambda: theta, retry)
-
-
 def _bisect(k, target, theta_max) -> Array:
     """Element-wise bisection of ``rho(theta) = target`` on ``[0, theta_max]`` (where rho
-    increases) until the bracket is two adjacent floats: certain, slow (`_RETRY_BISECTIONS`
-    passes), for the lenses whose Newton steps the seed cannot start (`_solve_theta_values`)."""
+    increases), down to the last float: certain, slow (`_RETRY_BISECTIONS` passes), for the lenses
+    whose Newton steps the seed cannot start (`solve_theta`). The bracket is the midpoint alone,
+    moved by ``theta_max / 2**(i + 2)`` towards the root at step ``i``: one plane of state, so the
+    retry adds few buffers to the program (on CPU, temporaries above glibc's 32 MiB mmap limit
+    are page-faulted afresh on every call, the fast path's too)."""
 
-    def bisect(_, bracket):
-        lo, hi = bracket
-        m = 0.5 * (lo + hi)
-        low = rho_of_theta(k, m) < target
-        return jnp.where(low, m, lo), jnp.where(low, hi, m)
+    def bisect(i, theta):
+        half = jnp.ldexp(theta_max, -(i + 2))
+        return theta + jnp.where(rho_of_theta(k, theta) < target, half, -half)
 
-    zero = jnp.zeros_like(target)
-    lo, hi = jax.lax.fori_loop(0, _RETRY_BISECTIONS[jnp.dtype(target.dtype)], bisect, (zero, zero + theta_max))
-    return 0.5 * (lo + hi)
+    return jax.lax.fori_loop(0, _RETRY_BISECTIONS[jnp.dtype(target.dtype)], bisect, jnp.full_like(target, 0.5) * theta_max)
 
 
 @jax.custom_jvp
@@ -173,15 +171,37 @@ def solve_theta(
     """Invert rho(theta) = rho on [0, theta_max] (element-wise; ``k1 > 0``); ``rho`` beyond
     ``rho(theta_max)`` gives ``theta_max``.
 
-    Values from `_solve_theta_values` (a per-lens Chebyshev seed, two Newton steps, the residual
-    check, and a bisection retry should the check fail anywhere), computed
-    on stopped-gradient inputs; gradients with respect to ``rho`` and ``k`` are implicit (exact):
-    `_implicit_theta`. Returns ``(theta, converged)``; `converged` is a per-element residual check,
-    never a silent default.
+    Values from `_fast_theta` (a per-lens Chebyshev seed, `_NEWTON_STEPS` Newton steps: one in
+    float32, two in float64, and the residual check); should the check fail anywhere (a lens whose
+    rho flattens near ``theta_max``, where the seed is poor), the whole batch is solved again by
+    bisection (`_bisect`), under a ``lax.cond`` on `all_of_batch`: the retry runs only when needed
+    and stays a branch under ``vmap`` over cameras.
+    Values are computed on stopped-gradient inputs; gradients with respect to ``rho`` and ``k``
+    are implicit (exact): `_implicit_theta`. Returns ``(theta, converged)``; `converged` is a
+    per-element residual check, never a silent default.
     """
+    return _solve_then(k, lambda: rho, theta_max, lambda theta, converged: (theta, converged))
+
+
+def _solve_then(k: Array, rho_of: Callable[[], Array], theta_max: Array, then: Callable[[Array, Array], T]) -> T:
+    """`solve_theta`, continued by ``then(theta, converged)`` inside both branches of the retry's
+    cond: a caller's outputs are written once (a cond that returned ``theta`` would copy it), and
+    ``rho_of()`` recomputes the radii where they are needed (the solve itself, the retry) instead
+    of storing them as an operand of the cond."""
     k_sg, theta_max = jax.lax.stop_gradient(k), jax.lax.stop_gradient(theta_max)
-    checked = _solve_theta_values(k_sg, jax.lax.stop_gradient(rho), theta_max)
-    return _implicit_theta(jnp.maximum(checked, 0.0), k, jnp.minimum(rho, rho_of_theta(k_sg, theta_max))), checked >= 0
+    rho_max = rho_of_theta(k_sg, theta_max)
+
+    def finish(checked):
+        target = jnp.minimum(rho_of(), rho_max)
+        return then(_implicit_theta(jnp.maximum(checked, 0.0), k, target), checked >= 0)
+
+    def retry(checked):
+        bounded = jnp.minimum(jax.lax.stop_gradient(rho_of()), rho_max)
+        return finish(_checked(k_sg, bounded, _bisect(k_sg, bounded, theta_max)))
+
+    checked = _fast_theta(k_sg, jax.lax.stop_gradient(rho_of()), theta_max)
+    # One reduction (the minimum) rather than a boolean plane and its reduction: -1 marks a failure.
+    return jax.lax.cond(all_of_batch(jnp.min(checked, initial=0.0) >= 0), finish, retry, checked)
 
 
 class WoodScapeFisheye(AbstractCamera):
@@ -301,38 +321,54 @@ class WoodScapeFisheye(AbstractCamera):
         Newton solve that did not converge. Invalid rays are finite placeholders.
         """
         uv, dtype = as_coordinates(uv, 2, "WoodScapeFisheye.unproject: uv")
-        # Per coordinate plane throughout: XLA on CPU does not vectorise reductions or
-        # concatenations over a minor axis of size 2 or 3 (`finite_pixels`, `finite_or_invalid`).
-        u, v = uv[..., 0], uv[..., 1]
-        finite = jnp.isfinite(u) & jnp.isfinite(v)  # a non-finite pixel becomes (0, 0): no NaN in gradients
-        u = jnp.where(finite, u, 0.0)
-        v = jnp.where(finite, v, 0.0)
         k = self.k.astype(dtype)
         lens = k[..., 0] > 0  # k1 <= 0: no valid ray (solve a harmless lens instead of dividing by k1)
         k = jnp.where(lens, k, jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype))
         cx, cy = self._principal_point(dtype)
         a = self.aspect_ratio.astype(dtype)
-        x = u - cx
-        y = (v - cy) / a
-        r2 = x * x + y * y
-        measurable = jnp.isfinite(r2)  # squares overflow beyond ~1e19 px (float32): invalid, not NaN
-        r2 = jnp.where(measurable, r2, 0.0)
-        rho = jnp.where(r2 > 0, jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)), 0.0)
         theta_max = self.theta_max(dtype)
         rho_max = rho_of_theta(jax.lax.stop_gradient(k), theta_max)
-        inside = rho <= rho_max * (1 + 4 * eps_for(dtype))  # the pixel of theta_max itself, after rounding
-        theta, converged = solve_theta(k, rho, theta_max)
-        # sin(θ)/rho = sinc(θ) / (rho(θ)/θ) at the root: smooth through the principal point, and no
-        # per-pixel sine, cosine or division by rho (both series are exact to rounding on [0, pi]).
-        s = _sinc(theta) / _rho_over_theta(k, theta)
-        c = _cos(theta)
-        ok = jnp.isfinite(x * s) & jnp.isfinite(y * s) & jnp.isfinite(c)
-        # The ray as one elementwise loop over (..., 3), selecting its component by index: no
-        # minor-axis concatenation (which XLA on CPU neither vectorises nor writes in place).
-        j = jax.lax.broadcasted_iota(jnp.int32, (*rho.shape, 3), rho.ndim)
-        ray = jnp.where(j == 2, c[..., None], jnp.where(j == 0, x[..., None], y[..., None]) * s[..., None])
-        ray = jnp.where(ok[..., None], ray, 0.0)
-        return ray, inside & converged & measurable & finite & lens & ok
+        rho_limit = rho_max * (1 + 4 * eps_for(dtype))  # the pixel of theta_max itself, after rounding
+
+        def centred(uv):
+            # Per coordinate plane throughout: XLA on CPU does not vectorise reductions or
+            # concatenations over a minor axis of size 2 or 3 (`finite_pixels`, `finite_or_invalid`).
+            u, v = uv[..., 0], uv[..., 1]
+            finite = jnp.isfinite(u) & jnp.isfinite(v)  # a non-finite pixel becomes (0, 0): no NaN in gradients
+            x = jnp.where(finite, u, 0.0) - cx
+            y = (jnp.where(finite, v, 0.0) - cy) / a
+            r2 = x * x + y * y
+            measurable = jnp.isfinite(r2)  # squares overflow beyond ~1e19 px (float32): invalid, not NaN
+            return x, y, jnp.where(measurable, r2, 0.0), finite & measurable
+
+        def ray_of(theta, converged):
+            # The pixel's coordinates again, from `uv` itself: recomputing them costs less than
+            # storing them as operands of the retry's cond and reading them back.
+            x, y, r2, finite = centred(uv)
+            inside = r2 <= rho_limit * rho_limit
+            # sin(θ)/rho = sinc(θ) / (rho(θ)/θ) at the root: smooth through the principal point, and
+            # no per-pixel sine, cosine or division by rho (both series are exact to rounding on [0, pi]).
+            s = _sinc(theta) / _rho_over_theta(k, theta)
+            ok = jnp.isfinite(x * s) & jnp.isfinite(y * s)  # False only for a degenerate lens
+            s = jnp.where(ok, jnp.maximum(s, 0.0), 0.0)
+            # The validity rides in the sign bit of s (+0 or more here) and the ray takes |s|: one
+            # plane feeds both outputs, and the ray stays one branch-free, vectorised loop.
+            s = jnp.where(inside & converged & finite & lens & ok, s, -s)
+            valid = ~jnp.signbit(s)
+            s = jnp.abs(s)
+            c = _cos(theta)
+            # The ray as one elementwise loop over (..., 3), selecting its component by index: no
+            # minor-axis concatenation (which XLA on CPU neither vectorises nor writes in place).
+            j = jax.lax.broadcasted_iota(jnp.int32, (*s.shape, 3), s.ndim)
+            ray = jnp.where(j == 2, c[..., None], jnp.where(j == 0, x[..., None], y[..., None]) * s[..., None])
+            return ray, valid
+
+        return _solve_then(k, lambda: _radius(centred(uv)[2]), theta_max, ray_of)
+
+
+def _radius(r2: Array) -> Array:
+    """``sqrt(r2)``, with a finite gradient (0) at ``r2 = 0``."""
+    return jnp.where(r2 > 0, jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)), 0.0)
 
 
 def _series(coefficients: tuple[float, ...], t2: Array) -> Array:

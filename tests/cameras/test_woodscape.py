@@ -91,6 +91,30 @@ def test_lens_that_needs_the_retry_still_solves_every_pixel():
     np.testing.assert_allclose(np.asarray(rho_of_theta(k, theta)), np.asarray(rho), rtol=0, atol=1e-9)
 
 
+def test_full_frame_float32_temporaries_stay_under_the_mmap_threshold(real_calibration_path):
+    """The float32 full-frame program's temporaries (one arena) stay below glibc's 32 MiB mmap
+    threshold, so their pages are reused from call to call instead of faulted afresh (compiled
+    only, never timed). The retry's bisection keeps one plane of state for this."""
+    cam = jf.load_calibration(real_calibration_path).camera.astype(jnp.float32)
+    compiled = jax.jit(lambda c, g: c.unproject(g)).lower(cam, cam.pixel_grid(jnp.float32)).compile()
+    assert compiled.memory_analysis().temp_size_in_bytes < 32 * 2**20
+
+
+def test_ray_at_theta_pi_is_valid_and_a_degenerate_lens_gives_finite_invalid_rays():
+    """The validity rides in the sign bit of sin(theta)/rho: the ray of theta = pi (where that is
+    0, or a rounding below it) stays valid, and a lens whose rays overflow gives invalid, finite
+    placeholders."""
+    cam = jf.WoodScapeFisheye(np.array([300.0, 0.0, 0.0, 0.0]), width=1280, height=966)
+    cx, cy = np.asarray(cam.principal_point)
+    uv = jnp.asarray([[cx + 300.0 * np.pi, cy], [cx, cy - 300.0 * np.pi], [cx + 10.0, cy]])
+    rays, valid = jax.jit(lambda c, q: c.unproject(q))(cam, uv)
+    np.testing.assert_array_equal(np.asarray(valid), [True, True, True])
+    np.testing.assert_allclose(np.asarray(rays[:2]), [[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]], atol=1e-12)
+    tiny = jf.WoodScapeFisheye(np.array([1e-310, 0.0, 0.0, 0.0]), width=64, height=48)
+    rays, valid = jax.jit(lambda c, q: c.unproject(q))(tiny, tiny.pixel_grid(jnp.float64))
+    assert not bool(jnp.any(valid)) and bool(jnp.all(jnp.isfinite(rays)))
+
+
 def test_roundtrip_whole_image_float32(real_calibration_path, jit_project, jit_unproject):
     cam = jf.load_calibration(real_calibration_path).camera.astype(jnp.float32)
     grid = cam.pixel_grid(jnp.float32)
