@@ -98,7 +98,8 @@ def stop_on_signals():
 
 def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
               workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
-              motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1, rebuild: bool = False):
+              motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1, rebuild: bool = False,
+              compile_cache=True):
     """Run `jaxfish.dataset.build_dataset` of ``capture_dir`` (a capture directory or any
     `jaxfish.dataset.FrameSource`) with a rich progress bar (samples/s); returns the report.
     SIGINT or SIGTERM stops the build (`jaxfish.dataset.BuildInterrupted`): one ``interrupted:``
@@ -107,7 +108,8 @@ def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler
         with stop_on_signals():
             return _run_build(capture_dir, out_dir, frames=frames, scheduler=scheduler, workers=workers,
                               processes=processes, backward_flow=backward_flow, bev=bev, write_threads=write_threads,
-                              motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames, rebuild=rebuild)
+                              motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames, rebuild=rebuild,
+                              compile_cache=compile_cache)
     except KeyboardInterrupt as e:
         from ..dataset import BuildInterrupted
 
@@ -121,7 +123,7 @@ def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler
 
 def _run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
                workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
-               motion_threshold_m: float, png_level: int, batch_frames: int, rebuild: bool):
+               motion_threshold_m: float, png_level: int, batch_frames: int, rebuild: bool, compile_cache=True):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ..dataset import BuildOptions, as_source, build_dataset
@@ -130,7 +132,8 @@ def _run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, schedule
     frames_ = frames if frames is not None else as_source(capture_dir).frames
     total = len(frames_)
     options = BuildOptions(backward_flow=backward_flow, bev=bev, motion_threshold_m=motion_threshold_m,
-                           png_level=png_level, write_threads=write_threads, batch_frames=batch_frames)
+                           png_level=png_level, write_threads=write_threads, batch_frames=batch_frames,
+                           compile_cache=_usable_compile_cache(compile_cache))
     from ..dataset import is_complete, sample_id
 
     complete_before = {sample_id(f) for f in frames_
@@ -158,6 +161,19 @@ def _run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, schedule
     return report
 
 
+def _usable_compile_cache(setting):
+    """``setting`` (`jaxfish.dataset.BuildOptions.compile_cache`), or False with a ``warning:`` line
+    on stderr when its folder cannot be used: the build goes on without the cache."""
+    from ..dataset import compile_cache_folder, compile_cache_problem
+
+    folder = compile_cache_folder(setting)
+    problem = None if folder is None else compile_cache_problem(folder)
+    if problem is None:
+        return setting
+    note(f"warning: {problem}; building without it (every process compiles its programs)")
+    return False
+
+
 @app.command()
 def build(
     capture_dir: Path = typer.Argument(..., help="Capture directory (docs/capture_layout.md)."),
@@ -176,6 +192,12 @@ def build(
                                      help="Consecutive samples per batched ground-truth call (one vmapped program on a GPU)."),
     rebuild: bool = typer.Option(False, "--rebuild",
                                  help="Rebuild the samples OUT_DIR holds from another capture or with other options."),
+    compile_cache: Path | None = typer.Option(
+        None, "--compile-cache", metavar="DIR",
+        help="Folder of compiled programs shared by the build's processes and later builds "
+             "(default: $JAXFISH_COMPILE_CACHE, else $XDG_CACHE_HOME/jaxfish/xla)."),
+    no_compile_cache: bool = typer.Option(False, "--no-compile-cache",
+                                          help="Compile every program in every process (no cache folder)."),
 ) -> None:
     """Build a SynWoodScape-style dataset from a capture: every camera's images, depth, semantics,
     instances, motion, flow, events and boxes, plus dataset.json. Resumable (complete samples are
@@ -195,6 +217,13 @@ def build(
     report = run_build(capture_dir, out_dir, frames=chosen, scheduler=scheduler, workers=workers,
                        processes=processes, backward_flow=backward_flow, bev=bev, write_threads=write_threads,
                        motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames,
-                       rebuild=rebuild)
+                       rebuild=rebuild, compile_cache=_compile_cache_setting(compile_cache, no_compile_cache))
     if not report.ok:
         raise typer.Exit(1)
+
+
+def _compile_cache_setting(folder: Path | None, off: bool):
+    """`jaxfish.dataset.BuildOptions.compile_cache` of ``--compile-cache DIR`` / ``--no-compile-cache``."""
+    if off and folder is not None:
+        raise fail("--compile-cache and --no-compile-cache: give one of them")
+    return False if off else (folder if folder is not None else True)

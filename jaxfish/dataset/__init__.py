@@ -36,9 +36,15 @@ from ._layout import sample_id as sample_id
 from ._manifest import DATASET_FORMAT as DATASET_FORMAT
 from ._manifest import dataset_manifest as dataset_manifest
 from ._manifest import write_dataset_files as write_dataset_files
+from ._runtime import COMPILE_CACHE_ENV as COMPILE_CACHE_ENV
+from ._runtime import CompileCacheWarning as CompileCacheWarning
+from ._runtime import compile_cache_folder as compile_cache_folder
+from ._runtime import compile_cache_problem as compile_cache_problem
 from ._runtime import core_shares as core_shares
+from ._runtime import default_compile_cache as default_compile_cache
 from ._runtime import share_cores as share_cores
 from ._runtime import tune_allocator as tune_allocator
+from ._runtime import use_compile_cache as use_compile_cache
 from ._sink import LayoutSink as LayoutSink
 from ._sink import synwoodscape_palette_dict as synwoodscape_palette_dict
 from ._sources import CaptureSource as CaptureSource
