@@ -131,13 +131,78 @@ def bench_stages(capture: Path, scratch: Path, repeat: int) -> None:
           f"1 sample/s needs <= 2.00 CPU-s")
 
 
+# ------------------------------------------------------------------ whole builds on 1, 2, 4 workers
+def _whole_build(capture: str, out: str, workers: int, cache: str) -> dict:
+    """One whole build in this (fresh) process: ``workers`` 0 = serial; ``cache`` a folder or ""
+    (no compile cache). Returns the build's wall time (compilation, cluster start included) and
+    its rate after the first sample (compilation excluded)."""
+    from jaxfish.dataset import BuildOptions, build_dataset
+
+    stamps: list[float] = []
+    start = time.perf_counter()
+    report = build_dataset(capture, out, options=BuildOptions(compile_cache=cache or False),
+                           workers=workers or None, progress=lambda _s, _e: stamps.append(time.perf_counter()))
+    wall = time.perf_counter() - start
+    assert report.ok, report.summary()
+    after = (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 and stamps[-1] > stamps[0] else 0.0
+    return {"wall_s": wall, "first_s": stamps[0] - start, "after_rate": after, "samples": len(report.built)}
+
+
+def _whole_build_in_a_process(capture: Path, out: Path, workers: int, cache: str) -> dict:
+    import json
+    import subprocess
+    import sys
+
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, __file__, "--whole-build", json.dumps([str(capture), str(out), workers, cache])],
+                          capture_output=True, text=True, check=True)
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    result["process_s"] = time.perf_counter() - start  # Python and JAX start-up included
+    return result
+
+
+def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list[str]) -> None:
+    """Whole builds of every frame of ``capture``, each in a fresh process, serial (``0``) and on
+    local clusters of ``workers`` pinned process workers, with no compile cache (``off``), an
+    empty one (``cold``) and the one the cold build filled (``warm``)."""
+    print(f"whole builds of {len(_frames(capture))} samples, each in a fresh process (load {os.getloadavg()[0]:.1f}):")
+    print(f"  {'build':22s} {'cache':5s} {'wall s':>7s} {'first s':>8s} {'samples/s after 1st':>20s}")
+    for n in [0, *workers]:
+        name = "serial (--no-dask)" if n == 0 else f"--workers {n}"
+        folder = scratch / f"xla-{n}"
+        shutil.rmtree(folder, ignore_errors=True)
+        for cache in caches:
+            out = scratch / f"whole-{n}-{cache}"
+            r = _whole_build_in_a_process(capture, out, n, "" if cache == "off" else str(folder))
+            shutil.rmtree(out, ignore_errors=True)
+            print(f"  {name:22s} {cache:5s} {r['wall_s']:7.1f} {r['first_s']:8.1f} {r['after_rate']:20.2f}", flush=True)
+
+
+def _frames(capture: Path) -> list:
+    import json
+
+    return json.loads((capture / "capture.json").read_text())["frames"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--capture", type=Path, default=None, help="full-size capture with frame 0 (rendered if absent)")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--no-dask", action="store_true")
     parser.add_argument("--stages", action="store_true", help="also time each stage of a sample (wall and CPU)")
+    parser.add_argument("--workers", default=None,
+                        help="whole builds of every frame on these worker counts, e.g. 1,2,4 (with a serial one)")
+    parser.add_argument("--caches", default="off,cold,warm", help="compile caches of the whole builds")
+    parser.add_argument("--scale", type=float, default=None,
+                        help="render the capture at this scale of the demo's sizes (with --frames)")
+    parser.add_argument("--frames", type=int, default=1, help="frames of the rendered capture")
+    parser.add_argument("--whole-build", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.whole_build:
+        import json
+
+        print(json.dumps(_whole_build(*json.loads(args.whole_build))))
+        return
     scratch = Path(tempfile.mkdtemp(prefix="jaxfish_bench_build_"))
     try:
         capture = args.capture
@@ -147,8 +212,17 @@ def main() -> None:
 
             capture = capture or scratch / "capture"
             t = time.perf_counter()
-            synthesize_capture(capture, default_rig(), frames=1, seed=0)
+            if args.scale is not None:
+                from jaxfish.cli._demo import demo_config, demo_rig
+
+                synthesize_capture(capture, demo_rig(args.scale), frames=args.frames, seed=0,
+                                   config=demo_config(args.scale))
+            else:
+                synthesize_capture(capture, default_rig(), frames=args.frames, seed=0)
             print(f"rendered the full-size capture in {time.perf_counter() - t:.1f} s")
+        if args.workers:
+            bench_workers(capture, scratch, [int(n) for n in args.workers.split(",")], args.caches.split(","))
+            return
         from jaxfish.dataset import build_dataset
 
         t = time.perf_counter()
