@@ -10,6 +10,14 @@ on the sample first; then ``2 x workers`` builds of the sample run as separate t
     uv run python scripts/bench_build.py                    # renders the capture first (minutes)
     uv run python scripts/bench_build.py --capture out/cap  # reuse a full-size capture
     uv run python scripts/bench_build.py --capture out/cap --no-dask --stages  # + each stage's wall / CPU time
+    uv run python scripts/bench_build.py --capture out/cap8 --scale 0.25 --frames 8 --workers 1,2,4
+
+``--workers 1,2,4`` instead builds every frame of the capture in whole builds, each in a fresh
+process: serial and on local clusters of that many pinned process workers (4 on 2 cores: two per
+core), with no compile cache (``off``), an empty one (``cold``) and the one the cold build filled
+(``warm``) (``--caches``); it prints each build's wall time (compilation, cluster start included),
+the time to its first sample, and its rate after the first sample. ``--scale S --frames N``
+render a capture of N frames at S times the demo's sizes when ``--capture`` names none yet.
 
 Goal: >= 1 sample/s after compile, peak < 4 GB. Current figures: docs/performance.md.
 """

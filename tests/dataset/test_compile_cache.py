@@ -182,3 +182,26 @@ def test_an_unusable_folder_warns_and_the_build_goes_on(small_capture, reference
     assert guard is not None
     ref = {p.relative_to(reference_build[0]) for p in reference_build[0].rglob("*") if p.is_file()}
     assert {p.relative_to(tmp_path / "out") for p in (tmp_path / "out").rglob("*") if p.is_file()} == ref
+
+
+def test_the_driver_of_local_process_workers_builds_the_first_samples_into_the_cache(small_capture, tmp_path,
+                                                                                      monkeypatch, cache_off):
+    """With a compile cache, the driver builds the first `WARM_BATCHES` samples itself (compiling
+    into the cache) and the process workers build the rest."""
+    pytest.importorskip("distributed")
+    from jaxfish.dataset import _build
+
+    monkeypatch.setattr(_build, "WARM_BATCHES", 1)  # the small capture has two frames
+    built_here: list[int] = []
+    write = _build._write_sample
+
+    def written_here(source, out, truth, options, record):  # this process's only: workers import the module afresh
+        built_here.append(truth.index)
+        return write(source, out, truth, options, record)
+
+    monkeypatch.setattr(_build, "_write_sample", written_here)
+    folder = tmp_path / "xla"
+    report = build_dataset(small_capture, tmp_path / "out", workers=2, options=BuildOptions(compile_cache=folder))
+    assert report.ok, report.summary()
+    assert report.built == ["00000", "00001"] and built_here == [0]  # frame 1 on a worker
+    assert list(folder.glob("*-cache"))
