@@ -22,6 +22,14 @@ worker warms up on the sample first; then ``2 x workers`` builds of the sample r
     uv run python scripts/bench_build.py --capture out/cap --textured-capture out/cap-tex  # kept, reused
     uv run python scripts/bench_build.py --scale 0.5 --tables-only  # half size, stage tables only
 
+``--workers 1,2,4`` instead builds every frame of the capture (``--frames N`` when rendered) in
+whole builds, each in a fresh process: serial and on local clusters of that many pinned process
+workers (4 on 2 cores: two per core), with no compile cache (``off``), an empty one (``cold``) and
+the one the cold build filled (``warm``) (``--caches``); it prints each build's wall time
+(compilation, cluster start included), the time to its first sample, and its rate after the first.
+
+    uv run python scripts/bench_build.py --content textured --scale 0.25 --frames 8 --workers 1,2,4
+
 Goals: <= 2.0 CPU-s per sample from the textured capture (>= 1 sample/s on two cores), <= 1.5 from
 memory, peak < 4 GB. Current figures: docs/performance.md.
 """
@@ -125,14 +133,14 @@ def capture_settings(scale: float, textured: bool):
                                     front_width=front, front_height=max(12, round(front * 3 / 4)))
 
 
-def render_capture(path: str, scale: float, textured: bool) -> float:
-    """Render frame 0 of seed 0 into ``path`` (run in a child process: its memory is not the
-    builder's); returns the seconds it took."""
+def render_capture(path: str, scale: float, textured: bool, frames: int = 1) -> float:
+    """Render frames 0 to ``frames - 1`` of seed 0 into ``path`` (run in a child process: its memory
+    is not the builder's); returns the seconds it took."""
     from jaxfish.dataset import synthesize_capture
 
     rig, config = capture_settings(scale, textured)
     start = time.perf_counter()
-    synthesize_capture(path, rig, frames=1, seed=0, config=config)
+    synthesize_capture(path, rig, frames=frames, seed=0, config=config)
     return time.perf_counter() - start
 
 
@@ -313,7 +321,7 @@ def prepare_captures(args, scratch: Path) -> dict[str, Path]:
         path = given[content]
         if path is None or not (path / "capture.json").is_file():
             path = path or scratch / f"capture-{content}"
-            seconds = in_child(render_capture, str(path), args.scale, content == "textured")
+            seconds = in_child(render_capture, str(path), args.scale, content == "textured", args.frames)
             print(f"rendered the {content} capture (scale {args.scale:g}) in {seconds:.1f} s: {path}", flush=True)
         captures[content] = path
     return captures
@@ -327,6 +335,59 @@ def report_contents(captures: dict[str, Path], scratch: Path, repeat: int) -> No
         work = scratch / f"stages-{content}"
         work.mkdir(parents=True, exist_ok=True)
         print_stage_table(content, in_child(measure_stages, str(capture), str(work), repeat), repeat)
+
+
+# ------------------------------------------------------------------ whole builds on 1, 2, 4 workers
+def _whole_build(capture: str, out: str, workers: int, cache: str) -> dict:
+    """One whole build in this (fresh) process: ``workers`` 0 = serial; ``cache`` a folder or ""
+    (no compile cache). Returns the build's wall time (compilation, cluster start included) and
+    its rate after the first sample (compilation excluded)."""
+    from jaxfish.dataset import BuildOptions, build_dataset
+
+    stamps: list[float] = []
+    start = time.perf_counter()
+    report = build_dataset(capture, out, options=BuildOptions(compile_cache=cache or False),
+                           workers=workers or None, progress=lambda _s, _e: stamps.append(time.perf_counter()))
+    wall = time.perf_counter() - start
+    assert report.ok, report.summary()
+    after = (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 and stamps[-1] > stamps[0] else 0.0
+    return {"wall_s": wall, "first_s": stamps[0] - start, "after_rate": after, "samples": len(report.built)}
+
+
+def _whole_build_in_a_process(capture: Path, out: Path, workers: int, cache: str) -> dict:
+    import json
+    import subprocess
+    import sys
+
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, __file__, "--whole-build", json.dumps([str(capture), str(out), workers, cache])],
+                          capture_output=True, text=True, check=True)
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    result["process_s"] = time.perf_counter() - start  # Python and JAX start-up included
+    return result
+
+
+def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list[str]) -> None:
+    """Whole builds of every frame of ``capture``, each in a fresh process, serial (``0``) and on
+    local clusters of ``workers`` pinned process workers, with no compile cache (``off``), an
+    empty one (``cold``) and the one the cold build filled (``warm``)."""
+    print(f"whole builds of {len(_frames(capture))} samples, each in a fresh process (load {os.getloadavg()[0]:.1f}):")
+    print(f"  {'build':22s} {'cache':5s} {'wall s':>7s} {'first s':>8s} {'samples/s after 1st':>20s}")
+    for n in [0, *workers]:
+        name = "serial (--no-dask)" if n == 0 else f"--workers {n}"
+        folder = scratch / f"xla-{n}"
+        shutil.rmtree(folder, ignore_errors=True)
+        for cache in caches:
+            out = scratch / f"whole-{n}-{cache}"
+            r = _whole_build_in_a_process(capture, out, n, "" if cache == "off" else str(folder))
+            shutil.rmtree(out, ignore_errors=True)
+            print(f"  {name:22s} {cache:5s} {r['wall_s']:7.1f} {r['first_s']:8.1f} {r['after_rate']:20.2f}", flush=True)
+
+
+def _frames(capture: Path) -> list:
+    import json
+
+    return json.loads((capture / "capture.json").read_text())["frames"]
 
 
 def main() -> None:
@@ -343,10 +404,25 @@ def main() -> None:
     parser.add_argument("--no-dask", action="store_true")
     parser.add_argument("--tables-only", action="store_true",
                         help="only the bits per pixel and the stage tables (no serial build_dataset or dask rates)")
+    parser.add_argument("--workers", default=None,
+                        help="instead: whole builds of every frame on these worker counts, e.g. 1,2,4 (with a serial "
+                             "one), on the textured capture (the smooth one with --content smooth)")
+    parser.add_argument("--caches", default="off,cold,warm", help="compile caches of the whole builds")
+    parser.add_argument("--frames", type=int, default=1, help="frames of the rendered captures")
+    parser.add_argument("--whole-build", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.whole_build:
+        import json
+
+        print(json.dumps(_whole_build(*json.loads(args.whole_build))))
+        return
     scratch = Path(tempfile.mkdtemp(prefix="jaxfish_bench_build_"))
     try:
         captures = prepare_captures(args, scratch)
+        if args.workers:
+            capture = captures.get("textured", captures.get("smooth"))
+            bench_workers(capture, scratch, [int(n) for n in args.workers.split(",")], args.caches.split(","))
+            return
         report_contents(captures, scratch, args.repeat)
         if args.tables_only:
             return

@@ -7,7 +7,12 @@ import jax
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
+import os  # noqa: E402
 from pathlib import Path  # noqa: E402
+
+# No compile cache unless a test names one (tests/dataset/test_compile_cache.py): the suite neither
+# reads nor fills the user's cache folder, and dask workers started by tests inherit this.
+os.environ["JAXFISH_COMPILE_CACHE"] = ""
 
 import pytest  # noqa: E402
 

@@ -99,7 +99,7 @@ def stop_on_signals():
 def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
               workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
               motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1, rebuild: bool = False,
-              shard=None):
+              shard=None, compile_cache=True):
     """Run `jaxfish.dataset.build_dataset` of ``capture_dir`` (a capture directory or any
     `jaxfish.dataset.FrameSource`) with a rich progress bar (samples/s); returns the report.
     ``shard``: a `jaxfish.dataset.Shard` to build only that shard (`resolve_shard`).
@@ -110,7 +110,7 @@ def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler
             return _run_build(capture_dir, out_dir, frames=frames, scheduler=scheduler, workers=workers,
                               processes=processes, backward_flow=backward_flow, bev=bev, write_threads=write_threads,
                               motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames, rebuild=rebuild,
-                              shard=shard)
+                              shard=shard, compile_cache=compile_cache)
     except KeyboardInterrupt as e:
         from ..dataset import BuildInterrupted
 
@@ -124,7 +124,8 @@ def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler
 
 def _run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
                workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
-               motion_threshold_m: float, png_level: int, batch_frames: int, rebuild: bool, shard=None):
+               motion_threshold_m: float, png_level: int, batch_frames: int, rebuild: bool, shard=None,
+               compile_cache=True):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ..dataset import BuildOptions, as_source, build_dataset
@@ -135,7 +136,8 @@ def _run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, schedule
         frames_ = shard.select(frames_)
     total = len(frames_)
     options = BuildOptions(backward_flow=backward_flow, bev=bev, motion_threshold_m=motion_threshold_m,
-                           png_level=png_level, write_threads=write_threads, batch_frames=batch_frames)
+                           png_level=png_level, write_threads=write_threads, batch_frames=batch_frames,
+                           compile_cache=_usable_compile_cache(compile_cache))
     from ..dataset import is_complete, sample_id
 
     complete_before = {sample_id(f) for f in frames_
@@ -186,6 +188,19 @@ SHARD_HELP = ("Build only shard I of N (e.g. 0/4: the k-th of the sorted frames 
               "(SLURM_ARRAY_TASK_ID / SLURM_ARRAY_TASK_COUNT) when set; 'all': the whole build.")
 
 
+def _usable_compile_cache(setting):
+    """``setting`` (`jaxfish.dataset.BuildOptions.compile_cache`), or False with a ``warning:`` line
+    on stderr when its folder cannot be used: the build goes on without the cache."""
+    from ..dataset import compile_cache_folder, compile_cache_problem
+
+    folder = compile_cache_folder(setting)
+    problem = None if folder is None else compile_cache_problem(folder)
+    if problem is None:
+        return setting
+    note(f"warning: {problem}; building without it (every process compiles its programs)")
+    return False
+
+
 @app.command()
 def build(
     capture_dir: Path = typer.Argument(..., help="Capture directory (docs/capture_layout.md)."),
@@ -205,6 +220,12 @@ def build(
     rebuild: bool = typer.Option(False, "--rebuild",
                                  help="Rebuild the samples OUT_DIR holds from another capture or with other options."),
     shard: str | None = typer.Option(None, "--shard", metavar="I/N", help=SHARD_HELP),
+    compile_cache: Path | None = typer.Option(
+        None, "--compile-cache", metavar="DIR",
+        help="Folder of compiled programs shared by the build's processes and later builds "
+             "(default: $JAXFISH_COMPILE_CACHE, else $XDG_CACHE_HOME/jaxfish/xla)."),
+    no_compile_cache: bool = typer.Option(False, "--no-compile-cache",
+                                          help="Compile every program in every process (no cache folder)."),
 ) -> None:
     """Build a SynWoodScape-style dataset from a capture: every camera's images, depth, semantics,
     instances, motion, flow, events and boxes, plus dataset.json. Resumable (complete samples are
@@ -227,6 +248,14 @@ def build(
     report = run_build(capture_dir, out_dir, frames=chosen, scheduler=scheduler, workers=workers,
                        processes=processes, backward_flow=backward_flow, bev=bev, write_threads=write_threads,
                        motion_threshold_m=motion_threshold_m, png_level=png_level, batch_frames=batch_frames,
-                       rebuild=rebuild, shard=chosen_shard)
+                       rebuild=rebuild, shard=chosen_shard,
+                       compile_cache=_compile_cache_setting(compile_cache, no_compile_cache))
     if not report.ok:
         raise typer.Exit(1)
+
+
+def _compile_cache_setting(folder: Path | None, off: bool):
+    """`jaxfish.dataset.BuildOptions.compile_cache` of ``--compile-cache DIR`` / ``--no-compile-cache``."""
+    if off and folder is not None:
+        raise fail("--compile-cache and --no-compile-cache: give one of them")
+    return False if off else (folder if folder is not None else True)

@@ -62,9 +62,15 @@ from ._reader import SynWoodScapeDataset as SynWoodScapeDataset
 from ._reader import collate as collate
 from ._reader import open as open
 from ._reader import vehicle_to_world_matrix as vehicle_to_world_matrix
+from ._runtime import COMPILE_CACHE_ENV as COMPILE_CACHE_ENV
+from ._runtime import CompileCacheWarning as CompileCacheWarning
+from ._runtime import compile_cache_folder as compile_cache_folder
+from ._runtime import compile_cache_problem as compile_cache_problem
 from ._runtime import core_shares as core_shares
+from ._runtime import default_compile_cache as default_compile_cache
 from ._runtime import share_cores as share_cores
 from ._runtime import tune_allocator as tune_allocator
+from ._runtime import use_compile_cache as use_compile_cache
 from ._shards import SHARD_RULE as SHARD_RULE
 from ._shards import SHARDS_DIR as SHARDS_DIR
 from ._shards import Shard as Shard

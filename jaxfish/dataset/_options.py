@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +48,11 @@ class BuildOptions:
     computes the fisheye ground truth of that many consecutive samples in one batched call
     (`build_samples`; one dask task each): no faster on CPU, where the cameras and frames are
     looped anyway, but one wide `jax.vmap` program on an accelerator; it holds that many samples in
-    memory (~0.5 GB each at full size)."""
+    memory (~0.5 GB each at full size). ``compile_cache`` is the folder of JAX's persistent
+    compilation cache that every process of the build (the serial build's, each dask worker)
+    writes its compiled programs to and loads them from (`jaxfish.dataset.use_compile_cache`):
+    True (the default) for `jaxfish.dataset.default_compile_cache`, which each process resolves
+    for itself, a path for that folder, False for none (every process compiles its programs)."""
 
     backward_flow: bool = False
     bev: bool = True
@@ -56,6 +61,7 @@ class BuildOptions:
     write_threads: int = 2
     tune_allocator: bool = False
     batch_frames: int = 1
+    compile_cache: bool | str | os.PathLike = True
 
     def __post_init__(self) -> None:
         from ..io._images import is_png_level
@@ -66,6 +72,9 @@ class BuildOptions:
             raise DatasetError(f"BuildOptions: write_threads must be >= 0, got {self.write_threads}")
         if not isinstance(self.batch_frames, int) or self.batch_frames < 1:
             raise DatasetError(f"BuildOptions: batch_frames must be an integer >= 1, got {self.batch_frames!r}")
+        cache = self.compile_cache
+        if not isinstance(cache, (bool, str, os.PathLike)) or (isinstance(cache, str) and not cache.strip()):
+            raise DatasetError(f"BuildOptions: compile_cache must be True, False or a folder, got {cache!r}")
         m = self.motion_threshold_m
         if isinstance(m, bool) or not isinstance(m, (int, float)) or not math.isfinite(m) or m < 0:
             raise DatasetError(f"BuildOptions: motion_threshold_m must be a finite number of metres >= 0, got {m!r}")
@@ -78,8 +87,8 @@ class BuildOptions:
                                   bev=self.bev)
 
     def to_dict(self) -> dict[str, Any]:
-        """The options that shape the output (``write_threads``, ``tune_allocator`` and, on CPU,
-        ``batch_frames`` do not): recorded in ``dataset.json`` and in every completion marker."""
+        """The options that shape the output (``write_threads``, ``tune_allocator``,
+        ``compile_cache`` and, on CPU, ``batch_frames`` do not): recorded in ``dataset.json`` and in every completion marker."""
         return {"backward_flow": self.backward_flow, "bev": self.bev, "motion_threshold_m": self.motion_threshold_m,
                 "png_level": self.png_level}
 

@@ -9,9 +9,12 @@ import ctypes.util
 import os
 import signal
 import sys
+import tempfile
 import threading
 import time
+import warnings
 from collections.abc import Sequence
+from pathlib import Path
 
 # glibc mallopt parameters (malloc.h).
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
@@ -90,6 +93,27 @@ def share_cores(client) -> dict[str, tuple[int, ...]]:
     return dict(zip(addresses, shares, strict=True))
 
 
+CORE_SHARES_ENV = "JAXFISH_CORE_SHARES"
+"""Environment variable of `local_cluster`'s workers: every worker's share of the cores
+(``"0,1;2,3"``: worker ``i`` takes the ``i``-th group), taken by `dask_setup` at the worker's start."""
+
+
+def encode_shares(shares: Sequence[Sequence[int]]) -> str:
+    """`core_shares` as the value of `CORE_SHARES_ENV`."""
+    return ";".join(",".join(str(int(c)) for c in share) for share in shares)
+
+
+def _share_of(name, value: str) -> tuple[int, ...] | None:
+    """The share of the worker named ``name`` (`local_cluster` names them 0..N-1) in a
+    `CORE_SHARES_ENV` value; None when it names none."""
+    try:
+        shares = [tuple(int(c) for c in group.split(",")) for group in value.split(";")]
+        index = int(name)
+    except (TypeError, ValueError):
+        return None
+    return shares[index] if 0 <= index < len(shares) and shares[index] else None
+
+
 def _pin_process(cores: tuple[int, ...]) -> None:
     """Set the CPU affinity of every thread of this process (threads started later inherit it)."""
     for tid in os.listdir("/proc/self/task"):
@@ -150,12 +174,182 @@ def dask_setup(worker) -> None:
     process ends with the process that started the cluster (`die_with_parent`, whose id
     `BUILD_PID_ENV` holds; dask's nannies run in that process) and ignores SIGINT and SIGTERM, so
     that a Ctrl-C reaching the whole process group stops the build through its own process, which
-    ends its workers. Does nothing in a worker without `BUILD_PID_ENV` or in the building process
-    itself (thread workers)."""
+    ends its workers. A worker whose environment holds `CORE_SHARES_ENV` first pins itself to its
+    share of the cores (by its name), before JAX starts: XLA's thread pools, the decode threads
+    and the write threads of that worker then fit its share. Does nothing in a worker without
+    `BUILD_PID_ENV` or in the building process itself (thread workers)."""
     pid = os.environ.get(BUILD_PID_ENV, "")
     if not pid.isdigit() or int(pid) == os.getpid():
         return
+    share = _share_of(getattr(worker, "name", None), os.environ.get(CORE_SHARES_ENV, ""))
+    if share is not None and hasattr(os, "sched_setaffinity"):
+        # Before JAX starts its CPU client in this process: XLA sizes its thread pools from the
+        # affinity it finds then (one intra-op thread per core of the share).
+        with contextlib.suppress(OSError):  # a core this machine no longer lets us use
+            _pin_process(share)
     die_with_parent(int(pid))
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
+# ------------------------------------------------------------------ compiled programs shared on disk
+COMPILE_CACHE_ENV = "JAXFISH_COMPILE_CACHE"
+"""Environment variable naming the default compile-cache folder (`default_compile_cache`); an empty
+value turns the default cache off."""
+MIN_COMPILE_SECONDS = 0.0
+"""Programs that took at least this long to compile are written to the compile cache: all of them
+(JAX's default, 1 s, would leave most of a build's programs out, and which ones would depend on how
+busy the machine is; loading a small program costs less than compiling it)."""
+
+
+class CompileCacheWarning(UserWarning):
+    """The compile cache cannot be used (its folder is not a writable folder): the build goes on and
+    compiles its programs in every process."""
+
+
+def default_compile_cache() -> Path | None:
+    """The compile-cache folder a build uses by default: ``$JAXFISH_COMPILE_CACHE`` when set (None
+    when set to an empty string: no cache), else ``$XDG_CACHE_HOME/jaxfish/xla`` (``~/.cache``
+    when ``XDG_CACHE_HOME`` is unset). Each process resolves it for itself: a remote worker finds
+    its own user's folder."""
+    env = os.environ.get(COMPILE_CACHE_ENV)
+    if env is not None:
+        return Path(env).expanduser() if env.strip() else None
+    base = os.environ.get("XDG_CACHE_HOME", "").strip()
+    return (Path(base) if base else Path.home() / ".cache") / "jaxfish" / "xla"
+
+
+def compile_cache_folder(setting) -> Path | None:
+    """The folder of a ``compile_cache`` setting (`jaxfish.dataset.BuildOptions`): True ->
+    `default_compile_cache`, False / None -> None (off), a path -> that folder."""
+    if setting is True:
+        return default_compile_cache()
+    if setting is False or setting is None:
+        return None
+    return Path(os.fspath(setting)).expanduser()
+
+
+def compile_cache_problem(folder: str | os.PathLike) -> str | None:
+    """Why ``folder`` cannot hold the compile cache (it is not a folder, cannot be created, or a file
+    cannot be written into it), or None when it can. Creates the folder."""
+    path = Path(folder)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".jaxfish-probe-", dir=path)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        return f"{path}: cannot be used as the compile cache ({e.strerror or type(e).__name__})"
+    return None
+
+
+_CACHE_SET: list[str | None] = [None]  # the folder use_compile_cache configured in this process
+_WARNED: set[str] = set()
+
+
+def use_compile_cache(setting=True) -> Path | None:
+    """Configure JAX's persistent compilation cache in this process for a ``compile_cache``
+    setting (`compile_cache_folder`): programs compiled from now on are written to the folder, and
+    a program another process (a dask worker, an earlier build) compiled is loaded from it instead
+    of compiled again. A loaded program is the compiled program itself: the outputs' bytes are the
+    same (``tests/dataset/test_compile_cache.py``). Idempotent; returns the folder in use, None
+    when off.
+
+    Entries are written atomically (a temporary file renamed into place), so that processes may
+    write the same entry at the same time and a process killed while writing leaves no partial
+    entry; an entry that cannot be read back (corrupt) is removed and its program compiled again.
+    A folder that cannot be used (`compile_cache_problem`) warns (`CompileCacheWarning`) and turns
+    the cache off. The default setting (True) leaves a cache folder the process's own JAX
+    configuration already names (``JAX_COMPILATION_CACHE_DIR``) in place.
+
+    The cache key holds the program, the JAX and XLA versions and the compile options, not the
+    CPU model: share one folder only between machines of the same CPU type."""
+    import jax
+
+    folder = compile_cache_folder(setting)
+    current = jax.config.jax_compilation_cache_dir
+    if setting is True and current and current != _CACHE_SET[0]:
+        return Path(current)  # the process's own choice
+    if folder is not None:
+        problem = compile_cache_problem(folder)
+        if problem is not None:
+            if problem not in _WARNED:  # once per process and folder, not once per sample
+                _WARNED.add(problem)
+                warnings.warn(f"{problem}; building without it (every process compiles its programs)",
+                              CompileCacheWarning, stacklevel=2)
+            folder = None
+    wanted = None if folder is None else str(folder.resolve())
+    with _LOCK:
+        if wanted == _CACHE_SET[0] and current == wanted:
+            return folder
+        _configure_jax_cache(wanted)
+        _CACHE_SET[0] = wanted
+    return None if wanted is None else Path(wanted)
+
+
+def _configure_jax_cache(folder: str | None) -> None:
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache as public
+
+    public.reset_cache()
+    jax.config.update("jax_compilation_cache_dir", folder)
+    if folder is None:
+        return
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    try:  # JAX's own file cache writes entries in place; ours renames them into place
+        from jax._src import compilation_cache as internal
+
+        with internal._cache_initialized_mutex:
+            internal._cache = _AtomicFileCache(folder, internal.decompress_executable)
+            internal._cache_initialized = True
+    except (ImportError, AttributeError):  # pragma: no cover - another JAX: its own file cache
+        pass
+
+
+class _AtomicFileCache:
+    """JAX's file cache layout (``{key}-cache`` files, JAX's compression), written through a
+    temporary file renamed into place, and checked when read (an entry that does not decompress is
+    removed and reported as missing)."""
+
+    _SUFFIX = "-cache"
+
+    def __init__(self, folder: str, decompress):
+        self._path = Path(folder)
+        self._decompress = decompress
+
+    def get(self, key: str) -> bytes | None:
+        path = self._path / f"{key}{self._SUFFIX}"
+        try:
+            value = path.read_bytes()
+        except OSError:  # missing (or unreadable): compile
+            return None
+        try:
+            self._decompress(value)
+        except Exception:  # noqa: BLE001 - truncated or corrupt: whatever the codec raises
+            with contextlib.suppress(OSError):
+                path.unlink()
+            warnings.warn(f"{path}: corrupt compile-cache entry removed (its program is compiled again)",
+                          CompileCacheWarning, stacklevel=2)
+            return None
+        return value
+
+    def put(self, key: str, value: bytes) -> None:
+        path = self._path / f"{key}{self._SUFFIX}"
+        if path.exists():
+            return
+        fd, tmp = tempfile.mkstemp(prefix=f".{key[:16]}-", suffix=".tmp", dir=self._path)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(value)
+            os.replace(tmp, path)  # atomic: a reader sees no entry or the whole entry
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise
+
+    def clear(self) -> None:
+        for p in self._path.glob(f"*{self._SUFFIX}"):
+            with contextlib.suppress(OSError):
+                p.unlink()

@@ -244,7 +244,7 @@ class CaptureSource:
         faces = list(reader.faces)
         jobs = [(c, inst, face) for inst in ("prev", "curr") for c in names for face in faces]
         # PNG decoding releases the GIL: every face of every camera in one pool of threads.
-        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, os.cpu_count() or 1))) as pool:
+        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, _usable_cores()))) as pool:
             imgs = dict(zip(jobs, pool.map(lambda j: reader.face(index, j[0], j[2], j[1], actor_ids=False), jobs),
                             strict=True))
 
@@ -461,3 +461,11 @@ class EmbeddedSource:
 
     def __repr__(self) -> str:
         return f"EmbeddedSource(seed={self.seed}, frames={len(self.frames)}, face_size={self.face_size})"
+
+
+def _usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity: a pinned dask worker's share), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1

@@ -545,7 +545,7 @@ class CaptureReader:
         """All faces of a camera stacked on a leading face axis (the `CubeRig` order of `faces`);
         ``actor_ids=False`` skips the instance PNGs (`CameraImages.actor_id` None)."""
         # Decoding PNGs releases the GIL, so the faces are read in a thread pool.
-        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(self.faces), os.cpu_count() or 1))) as pool:
+        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(self.faces), _usable_cores()))) as pool:
             imgs = list(pool.map(lambda f: self.face(frame, camera, f, instant, actor_ids=actor_ids), self.faces))
         return CameraImages(*(None if getattr(imgs[0], k) is None else np.stack([getattr(i, k) for i in imgs])
                               for k in ("rgb", "depth_m", "semantic", "actor_id")))
@@ -639,3 +639,9 @@ class CaptureReader:
         return self._read_json(self._frame(frame) / "gnss.json")
 
 
+def _usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity: a pinned dask worker's share), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
