@@ -96,6 +96,8 @@ from ._ocamcalib import load_ocamcalib as load_ocamcalib
 from ._ocamcalib import ocamcalib_from_text as ocamcalib_from_text
 from ._ocamcalib import ocamcalib_to_text as ocamcalib_to_text
 from ._ocamcalib import save_ocamcalib as save_ocamcalib
+from ._png import decode_png as decode_png
+from ._png import encode_png as encode_png
 from ._rig_correspondences import RIG_FRAMES as RIG_FRAMES
 from ._rig_correspondences import RigCorrespondences as RigCorrespondences
 from ._rig_correspondences import load_rig_correspondences as load_rig_correspondences

@@ -4,12 +4,11 @@ match to the real frame is `scripts/bench_build.py`'s check at full size)."""
 
 from __future__ import annotations
 
-import zlib
-
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxfish.io import encode_png
 from jaxfish.scene import (
     CaptureConfig,
     cast_rays,
@@ -24,13 +23,9 @@ from .conftest import FACE
 
 
 def up_bits_per_pixel(rgb: np.ndarray) -> float:
-    """Bits per pixel of an RGB image as a PNG stream holds it: the "Up" row filter then zlib level 1."""
-    a = np.ascontiguousarray(rgb, np.uint8)
-    rows = a.reshape(a.shape[0], -1)
-    up = rows.copy()
-    up[1:] = rows[1:] - rows[:-1]
-    raw = np.concatenate([np.full((rows.shape[0], 1), 2, np.uint8), up], axis=1).tobytes()
-    return 8.0 * len(zlib.compress(raw, 1)) / (a.shape[0] * a.shape[1])
+    """Bits per pixel of an RGB image as jaxfish writes it (`jaxfish.io.encode_png`: the "Up" row
+    filter, one deflate stream at level 1)."""
+    return 8.0 * len(encode_png(np.ascontiguousarray(rgb, np.uint8), png_level=1)) / (rgb.shape[0] * rgb.shape[1])
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +131,7 @@ def test_the_option_reaches_the_scene_from_the_cli_the_capture_writer_and_the_em
 
     seen = []
 
-    def fake_synthesize(out, rig, *, frames, seed, config, progress):
+    def fake_synthesize(out, rig, *, frames, seed, config, progress, shard=None):
         seen.append(config.textured)
 
     monkeypatch.setattr(dataset, "synthesize_capture", fake_synthesize)
@@ -158,7 +153,7 @@ def test_the_option_reaches_the_scene_from_the_cli_the_capture_writer_and_the_em
     for textured in (False, True):
         config = CaptureConfig(face_size=16, textured=textured)
         with pytest.raises(_Stop):
-            synthesize._synthesize_locked(tmp_path / f"cap{textured}", rig, 1, 0, config, scene.sensor_mounts(rig, config), None)
+            synthesize._synthesize_locked(tmp_path / f"cap{textured}", rig, [0], 0, config, scene.sensor_mounts(rig, config), None)
         with pytest.raises(_Stop):
             dataset.EmbeddedSource(rig, frames=1, config=config).read(0)
     assert seen[2:] == [False, False, True, True]
