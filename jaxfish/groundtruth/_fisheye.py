@@ -175,8 +175,7 @@ def ground_truth_from_images(
     """`fisheye_ground_truth` from the camera's images at t-1 and t (`fisheye_images`, or a
     directly captured view's): the two compiled stages `ground_truth_plan` and
     `ground_truth_from_plan` with one host round trip between them for the static sizes
-    (`rest_statics`; a program already compiled for slightly larger sizes is reused, with the same
-    results: `_SizeVariants`). ``rays``: the camera's float32 `pixel_rays`; the options are
+    (`rest_statics`). ``rays``: the camera's float32 `pixel_rays`; the options are
     `fisheye_ground_truth`'s. Not traceable (it reads the plan's sizes back)."""
     c2w_p = camera_to_world(vehicle_to_world_prev, camera_to_vehicle)
     c2w = camera_to_world(vehicle_to_world, camera_to_vehicle)
@@ -185,10 +184,7 @@ def ground_truth_from_images(
                                                        carla_version, reach)
     statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates,
                            surface_samples, k_host, n_host, m_host)
-    args = (camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes, cands, points)
-    if max_candidates is None:
-        statics = _SIZE_VARIANTS.choose(args, statics)
-    return _jit_from_plan(*args, *statics)
+    return _jit_from_plan(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes, cands, points, *statics)
 
 
 def rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples,
@@ -202,40 +198,6 @@ def rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fal
         max_candidates = 1 << max(int(k) - 1, 0).bit_length()
     return (carla_version, float(motion_threshold_m), bool(backward_flow), float(margin_m), float(fallback_m),
             int(max_candidates), tile_capacity(int(busy)), tile_capacity(int(many)), int(surface_samples))
-
-
-class _SizeVariants:
-    """The size statics (``k``, ``capacity``, ``capacity_many``) of `ground_truth_from_plan`
-    programs compiled in this process, per signature (argument shapes, dtypes and structure; the
-    other statics). A camera whose plan needs sizes dominated by a compiled variant at most one
-    power of two larger in each (`REUSE_FACTOR`) runs that variant instead of compiling its own: the
-    results are identical (the sizes are exact whenever they reach the plan's counts; larger ones
-    only pad), and a compilation (seconds) costs more than the padded work (milliseconds). Among
-    several such variants the one of least padded work is taken."""
-
-    REUSE_FACTOR = 2
-
-    def __init__(self) -> None:
-        self._compiled: dict[Any, set[tuple[int, int, int]]] = {}
-
-    @staticmethod
-    def _signature(args, statics) -> Any:
-        leaves, treedef = jax.tree_util.tree_flatten(args)
-        shapes = tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves)
-        return treedef, shapes, statics[:5], statics[8:]
-
-    def choose(self, args, statics: tuple) -> tuple:
-        key = self._signature(args, statics)
-        need = statics[5:8]
-        known = self._compiled.setdefault(key, set())
-        fits = [v for v in known
-                if all(n <= h <= self.REUSE_FACTOR * max(n, 1) for n, h in zip(need, v, strict=True))]
-        size = min(fits, key=lambda v: (v[0] * v[1] + v[0] * v[2], v)) if fits else need
-        known.add(size)
-        return statics[:5] + size + statics[8:]
-
-
-_SIZE_VARIANTS = _SizeVariants()
 
 
 def view_ground_truth(

@@ -174,8 +174,7 @@ def rig_ground_truth(
     identical; flow within float32 rounding of differently fused pose products).
     ``max_candidates`` and the tile capacities of the instance segmentation are the largest over
     the batch with ``batch="vmap"`` (one host round trip), per camera and sample with
-    ``batch="loop"`` (where a program compiled for slightly larger sizes is reused rather than
-    compiled again: the same results). ``batch``: how the
+    ``batch="loop"`` (each camera's program is compiled on its own anyway). ``batch``: how the
     cameras and samples are mapped (module docstring). ``stacked=False`` returns a list with one
     `CameraGroundTruth` per camera (a list of such lists for ``N`` samples) instead: with
     ``batch="loop"`` it skips the copy of every output that stacking costs."""
