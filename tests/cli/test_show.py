@@ -18,9 +18,11 @@ from tests.hostile.corpus import run_cli
 
 @pytest.fixture(scope="module")
 def dataset(reference_build, tmp_path_factory):
-    """A copy of the suite's small reference build (the lidar test adds files to it)."""
+    """A copy of the suite's small reference build without its lidar sweeps (``lidar_vehicle/``):
+    the tests below draw the sheet without lidar, then with a hand-written sweep."""
     out = tmp_path_factory.mktemp("show") / "dataset"
     shutil.copytree(reference_build[0], out)
+    shutil.rmtree(out / "lidar_vehicle")
     return out
 
 
@@ -28,7 +30,7 @@ def test_show_writes_the_sheet_and_one_camera(dataset, tmp_path, capsys):
     code, out, err = run_cli(["show", str(dataset), "0", "--out", str(tmp_path / "s.png")], capsys)
     assert code == 0, err
     assert f"wrote {tmp_path / 's.png'}" in out
-    assert "no lidar" in err and "lidar_vehicle/00000.npy" in err  # this build has none
+    assert "no lidar" in err and "lidar_vehicle/00000.npy" in err  # this copy has none
     sheet = read_image(tmp_path / "s.png")
     assert sheet.shape == (2 * 48, 2 * 64, 3) and sheet.dtype == np.uint8
     code, out, err = run_cli(["show", str(dataset), "00000", "--camera", "RV", "--out", str(tmp_path / "rv.png")], capsys)
@@ -103,3 +105,11 @@ def test_the_contact_sheet_has_a_flow_wheel_and_a_depth_scale(dataset):
     mid = (g.bar_x1 - g.bar_x0 - 1) / 2
     assert (row[int(mid)] == depth_to_color(np.float32([lo * (hi / lo) ** (int(mid) / (2 * mid))]))[0]).all()
     assert row[0].sum() > row[-1].sum()  # near bright, far dark
+
+
+def test_show_draws_the_builds_own_lidar(reference_build, tmp_path, capsys):
+    """A build's own ``lidar_vehicle`` sweep is read: no "no lidar" line."""
+    code, out, err = run_cli(["show", str(reference_build[0]), "0", "--camera", "FV", "--out", str(tmp_path / "a.png")],
+                             capsys)
+    assert code == 0, err
+    assert "no lidar" not in err
