@@ -6,11 +6,12 @@ the four fisheyes, RGB + semantics of every camera (BEV included). Prints sample
 pass), the process's CPU time per sample (its inverse is the rate of one free core,
 all threads), MB of camera arrays per sample and the 1-minute load average.
 
-    uv run jaxfish build /work/tmp/fullcap /tmp/reader-ds      # a full-size dataset (or any)
-    uv run python scripts/bench_reader.py /tmp/reader-ds
+    uv run jaxfish synth --out CAP --frames 2 --texture    # a full-size capture
+    uv run jaxfish build CAP DATASET                        # its dataset (or any dataset)
+    uv run python scripts/bench_reader.py DATASET
 
-Goal: >= 10 samples/s for RGB + semantics of the four fisheyes (a 2-core trainer never waits for
-its reader). Current figures: docs/performance.md.
+Goal: reading is never the bottleneck of a 2-core trainer, i.e. ten or more samples a second for
+RGB + semantics of the four fisheyes in one process. Current figures: docs/performance.md.
 """
 
 from __future__ import annotations
