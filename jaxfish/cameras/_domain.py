@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for
 
@@ -52,16 +52,24 @@ def bisection_guess(f, params, target: Float[Array, "*batch"], theta_max: Float[
     that starts from it converges. Not differentiated (that solve is)."""
     params = jax.lax.stop_gradient(params)
     target = jax.lax.stop_gradient(target)
+    lo, hi = bisection_bracket(lambda theta: f(params, theta), target, theta_max, _GUESS_BISECTIONS)
+    return 0.5 * (lo + hi)
+
+
+def bisection_bracket(f, target: Float[Array, "*batch"], upper: Float[ArrayLike, ""], steps: int
+                      ) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
+    """``(lo, hi)`` after ``steps`` element-wise bisections of ``f(theta) = target`` on
+    ``[0, upper]`` (``f`` increasing there; ``target``'s dtype): ``f(lo) < target <= f(hi)`` when
+    the root lies inside, the bracket ``upper / 2**steps`` wide."""
 
     def bisect(_, bracket):
         a, b = bracket
         m = 0.5 * (a + b)
-        low = f(params, m) < target
+        low = f(m) < target
         return jnp.where(low, m, a), jnp.where(low, b, m)
 
     zero = jnp.zeros_like(target)
-    lo, hi = jax.lax.fori_loop(0, _GUESS_BISECTIONS, bisect, (zero, zero + theta_max.astype(target.dtype)))
-    return 0.5 * (lo + hi)
+    return jax.lax.fori_loop(0, steps, bisect, (zero, zero + jnp.asarray(upper).astype(target.dtype)))
 
 
 @jax.custom_batching.custom_vmap

@@ -14,7 +14,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_hypot
 from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, point_direction
-from ._domain import all_of_batch, first_increasing_limit
+from ._domain import all_of_batch, bisection_bracket, first_increasing_limit
 
 T = TypeVar("T")
 
@@ -67,15 +67,7 @@ def _chebyshev_seed(k: Float[Array, "4"], rho_max: Float[Array, ""], theta_max: 
     n = _SEED_DEGREE[jnp.dtype(dtype)] + 1
     angles = np.pi * (np.arange(n) + 0.5) / n
     nodes = jnp.asarray((np.cos(angles) + 1) / 2, dtype) * rho_max
-
-    def bisect(_, bracket):
-        a, b = bracket
-        m = 0.5 * (a + b)
-        low = rho_of_theta(k, m) < nodes
-        return jnp.where(low, m, a), jnp.where(low, b, m)
-
-    zero = jnp.zeros_like(nodes)
-    lo, hi = jax.lax.fori_loop(0, _NODE_BISECTIONS, bisect, (zero, zero + theta_max))
+    lo, hi = bisection_bracket(lambda theta: rho_of_theta(k, theta), nodes, theta_max, _NODE_BISECTIONS)
     transform = 2.0 / n * np.cos(np.outer(np.arange(n), angles))
     transform[0] /= 2
     return jnp.asarray(transform, dtype) @ (0.5 * (lo + hi))
