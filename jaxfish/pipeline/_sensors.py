@@ -73,7 +73,8 @@ def to_vehicle(points: Float[np.ndarray, "N 3"], sensor_to_vehicle: Float[np.nda
     """Points ``(N, 3)`` of a sensor's local frame -> the vehicle frame by a 4 x 4 (float64)."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     m = np.asarray(sensor_to_vehicle, np.float64)
-    return p @ m[:3, :3].T + m[:3, 3]
+    r = m[:3, :3]  # p @ r.T as products and sums in a fixed order (not a CPU-dependent BLAS kernel)
+    return p[:, 0:1] * r[:, 0] + p[:, 1:2] * r[:, 1] + p[:, 2:3] * r[:, 2] + m[:3, 3]
 
 
 def radar_points_local(radar: np.ndarray) -> Float[np.ndarray, "N 3"]:
@@ -164,7 +165,9 @@ def ego_state(ego: Mapping[str, Any]) -> EgoState:
         v = np.asarray(ego[key], np.float64)
         if v.shape != (3,):
             raise ValueError(f"{key} must be 3 numbers, got shape {v.shape}")
-        return r_actor.T @ v  # in the ego actor's Unreal axes
+        # In the ego actor's Unreal axes: R^T v as products and sums in a fixed order (a BLAS
+        # product's rounding depends on the CPU's kernel; these bytes must not).
+        return r_actor[0] * v[0] + r_actor[1] * v[1] + r_actor[2] * v[2]
 
     w = np.deg2rad(world_vector("angular_velocity"))
     return EgoState(timestamp_s=float(ego["timestamp_s"]), previous_timestamp_s=float(ego["timestamp_prev_s"]),
