@@ -11,40 +11,93 @@ from .._constants import DVS_EVENT_DTYPE
 from ..groundtruth import EventMap
 
 
+def _fan_table(targets: np.ndarray, fanout: np.ndarray | None) -> np.ndarray:
+    """Per face pixel, how many fisheye pixels it feeds, in the narrowest unsigned dtype that holds
+    ``targets``' width (a small table: its random reads per event stay in the cache)."""
+    fan = np.sum(targets >= 0, axis=1) if fanout is None else np.asarray(fanout)
+    return fan.astype(np.uint8 if targets.shape[1] < 256 else np.int64, copy=False)
+
+
+def _feeding(fan: np.ndarray, src: np.ndarray, inb: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The indices of the events (source pixels ``src``, in-bounds mask ``inb`` or None for all)
+    that feed at least one fisheye pixel, and how many each feeds."""
+    if inb is not None:
+        src = np.where(inb, src, 0)
+    counts = fan[src]
+    if inb is not None:
+        counts[~inb] = 0
+    keep = np.flatnonzero(counts)
+    return keep, counts[keep]
+
+
+def _copies(targets: np.ndarray, src: np.ndarray, keep: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each kept event once per fisheye pixel it feeds (slot order): ``(event index, fisheye flat index)``."""
+    rows = targets[src[keep]]  # (K, M): a pixel's targets first, -1 after
+    if rows.shape[1] == 1 or (counts.size and int(counts.max()) == 1):
+        return keep, rows[:, 0]
+    return np.repeat(keep, counts), rows[np.arange(rows.shape[1]) < counts[:, None]]
+
+
+def _by_time(flat: np.ndarray, t: np.ndarray, pol: np.ndarray, width: int) -> np.ndarray:
+    """CARLA-dtype events of fisheye flat indices ``flat``, stably sorted by ``t``."""
+    order = np.argsort(t, kind="stable")
+    y, x = np.divmod(flat[order], width)
+    out = np.empty(order.shape[0], DVS_EVENT_DTYPE)
+    out["x"], out["y"] = x, y
+    out["t"], out["pol"] = t[order], pol[order]
+    return out
+
+
 def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.ndarray, x: np.ndarray, y: np.ndarray,
                     t: np.ndarray, pol: np.ndarray, fanout: np.ndarray | None = None) -> np.ndarray:
     """NumPy twin of `jaxfish.groundtruth.map_events` + `compact_events` (same rule, same order:
     stable sort by time, ties in face-event then fisheye-pixel order) for an `EventMap`'s
     ``targets`` (and ``fanout``, derived from ``targets`` when omitted).
 
-    Args: ``targets`` ``(F * S * S, M)`` fisheye flat indices (-1 padding); ``width`` of the
-    fisheye; ``face_size`` ``S``; per face event its ``face`` index, ``x``, ``y`` (face pixels),
-    ``t`` (ns) and ``pol``. Returns the fisheye events in CARLA's DVS dtype (t unchanged, ns)."""
-    tg_all = np.asarray(targets)
-    n_src = tg_all.shape[0]
-    fan = np.sum(tg_all >= 0, axis=1) if fanout is None else np.asarray(fanout)
+    Args: ``targets`` ``(F * S * S, M)`` fisheye flat indices (-1 padding, a pixel's targets
+    first); ``width`` of the fisheye; ``face_size`` ``S``; per face event its ``face`` index,
+    ``x``, ``y`` (face pixels), ``t`` (ns) and ``pol``. Events outside the faces feed no pixel.
+    Returns the fisheye events in CARLA's DVS dtype (t unchanged, ns)."""
+    tg = np.asarray(targets)
+    fan = _fan_table(tg, fanout)
     s = int(face_size)
     f, xi, yi = (np.asarray(a, np.int64) for a in (face, x, y))
     inb = (f >= 0) & (xi >= 0) & (xi < s) & (yi >= 0) & (yi < s)
     src = (f * s + yi) * s + xi
-    inb &= (src >= 0) & (src < n_src)
-    src = np.where(inb, src, 0)
-    counts = np.where(inb, fan[src], 0)
-    ev_idx = np.repeat(np.arange(src.shape[0]), counts)  # each face event, once per fisheye pixel it feeds
-    slot = np.arange(ev_idx.shape[0]) - np.repeat(np.cumsum(counts) - counts, counts)
-    flat = tg_all[src[ev_idx], slot]
-    tt = np.asarray(t, np.int64)[ev_idx]
-    order = np.argsort(tt, kind="stable")
-    out = np.empty(order.shape[0], DVS_EVENT_DTYPE)
-    out["x"], out["y"] = flat[order] % width, flat[order] // width
-    out["t"], out["pol"] = tt[order], np.asarray(pol, bool)[ev_idx][order]
-    return out
+    inb &= src < tg.shape[0]
+    keep, counts = _feeding(fan, src, inb)
+    ev_idx, flat = _copies(tg, src, keep, counts)
+    return _by_time(flat, np.asarray(t, np.int64)[ev_idx], np.asarray(pol, bool)[ev_idx], int(width))
 
 
 def camera_events(events: Sequence[np.ndarray], event_map: EventMap) -> np.ndarray:
     """A camera's face events (one CARLA-dtype array per face, in the event map's face order)
-    mapped to its fisheye through ``event_map``: CARLA-dtype events, t in ns, time order."""
-    face = np.concatenate([np.full(ev.shape[0], i, np.int32) for i, ev in enumerate(events)])
-    cat = {k: np.concatenate([ev[k] for ev in events]) for k in ("x", "y", "t", "pol")}
-    return map_face_events(np.asarray(event_map.targets), int(event_map.width), int(event_map.face_size), face,
-                           cat["x"], cat["y"], cat["t"], cat["pol"], fanout=np.asarray(event_map.fanout))
+    mapped to its fisheye through ``event_map``: CARLA-dtype events, t in ns, time order; the same
+    events as `map_face_events` of the concatenated faces. Each face is mapped on its own: only
+    the events that feed a fisheye pixel are gathered and sorted."""
+    tg = np.asarray(event_map.targets)
+    fan = _fan_table(tg, np.asarray(event_map.fanout))
+    s = int(event_map.face_size)
+    index = np.int32 if tg.shape[0] < 2**31 else np.int64
+    flats, times, pols = [], [], []
+    for i, ev in enumerate(events):
+        if ev.shape[0] == 0:
+            continue
+        x, y = ev["x"], ev["y"]
+        src = y.astype(index)
+        src *= s
+        src += x
+        inb = None
+        if int(x.max()) >= s or int(y.max()) >= s or int(x.min()) < 0 or int(y.min()) < 0:
+            inb = (x >= 0) & (x < s) & (y >= 0) & (y < s)
+        src += i * s * s
+        if inb is not None or (i + 1) * s * s > tg.shape[0]:
+            inb = (src < tg.shape[0]) if inb is None else inb & (src < tg.shape[0])
+        keep, counts = _feeding(fan, src, inb)
+        ev_idx, flat = _copies(tg, src, keep, counts)
+        flats.append(flat)
+        times.append(ev["t"][ev_idx].astype(np.int64, copy=False))
+        pols.append(ev["pol"][ev_idx].astype(bool, copy=False))
+    if not flats:
+        return np.empty(0, DVS_EVENT_DTYPE)
+    return _by_time(np.concatenate(flats), np.concatenate(times), np.concatenate(pols), int(event_map.width))
