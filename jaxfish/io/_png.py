@@ -45,6 +45,7 @@ try:
 except ImportError:  # pragma: no cover - pyspng is a dependency; OpenImageIO is the fallback
     _pyspng = None
 
+_crc32 = zlib.crc32 if _isal_zlib is None else _isal_zlib.crc32  # ISA-L's: the same CRC, ~15x faster
 _INFLATE_ERRORS: tuple[type[Exception], ...] = (zlib.error,) if _isal_zlib is None else (zlib.error, _isal_zlib.error)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -86,7 +87,7 @@ def _decompress(data: bytes, size: int) -> bytes:
 
 
 def _chunk(kind: bytes, data: bytes | memoryview) -> bytes:
-    crc = zlib.crc32(data, zlib.crc32(kind))
+    crc = _crc32(data, _crc32(kind))
     return b"".join((struct.pack(">I", len(data)), kind, data, struct.pack(">I", crc)))
 
 
@@ -162,7 +163,7 @@ def _chunks(data: bytes, where: str):
             raise ImageError(f"{where}: truncated PNG (chunk {name} at byte {p} needs {length} bytes, the file ends at byte {n})")
         payload = view[p + 8:p + 8 + length]
         (crc,) = struct.unpack(">I", data[end - 4:end])
-        if zlib.crc32(payload, zlib.crc32(kind)) != crc:
+        if _crc32(payload, _crc32(kind)) != crc:
             raise ImageError(f"{where}: corrupt PNG: bad CRC in chunk {name} at byte {p}")
         yield kind, payload
         if kind == b"IEND":
@@ -188,10 +189,11 @@ def _header(payload: bytes, where: str) -> PngHeader:
 
 @dataclass(frozen=True)
 class ParsedPng:
-    """The header, concatenated IDAT payload and text entries of a PNG file."""
+    """The header, concatenated IDAT payload (a view of the file's bytes when it has one IDAT chunk)
+    and text entries of a PNG file."""
 
     header: PngHeader
-    idat: bytes
+    idat: bytes | memoryview
     text: dict[str, str]
 
 
@@ -222,7 +224,7 @@ def parse_png(data: bytes, where: str = "PNG", *, pixels: bool = True) -> Parsed
     if not idat:
         raise ImageError(f"{where}: bad PNG: no IDAT chunk (no pixel data)")
     return ParsedPng(PngHeader(header.width, header.height, header.bit_depth, header.color_type, header.interlace,
-                               trns), b"".join(idat), text)
+                               trns), idat[0] if len(idat) == 1 else b"".join(idat), text)
 
 
 def _text(kind: bytes, payload: bytes, where: str) -> tuple[str, str]:
