@@ -9,7 +9,9 @@ import time
 import numpy as np
 
 from jaxfish.io import write_npz
-from jaxfish.pipeline import depth_to_color, map_face_events
+from jaxfish._constants import DVS_EVENT_DTYPE
+from jaxfish.groundtruth import EventMap
+from jaxfish.pipeline import camera_events, depth_to_color, events_color, map_face_events
 
 
 def test_numpy_event_mapping_follows_the_rule():
@@ -37,6 +39,43 @@ def test_numpy_event_mapping_follows_the_rule():
         assert [(int(a), int(b), int(c), bool(d)) for a, b, c, d in zip(got["t"], got["x"], got["y"], got["pol"],
                                                                         strict=True)] == \
             [(w[0], w[2], w[3], w[4]) for w in want]
+
+
+def test_camera_events_face_by_face_equal_the_mapping_of_all_faces():
+    """`camera_events` (each face mapped on its own) gives the events of `map_face_events` of the
+    concatenated faces: same order (time, then face, event and fisheye pixel), out-of-face events
+    dropped, empty faces, fan-outs of 0 to 3, faces beyond the map's."""
+    rng = np.random.default_rng(1)
+    faces, size, width, height, m = 3, 5, 9, 6, 3
+    n_src = faces * size * size
+    fan = rng.integers(0, m + 1, n_src)
+    targets = np.full((n_src, m), -1, np.int32)
+    for i in range(n_src):
+        targets[i, : fan[i]] = np.sort(rng.choice(width * height, fan[i], replace=False))
+    emap = EventMap(targets=targets, fanout=fan.astype(np.int32), width=width, height=height, face_size=size,
+                    num_faces=faces, max_fanout=m)
+    per_face = []
+    for k in (40, 0, 55, 7):  # the fourth face is beyond the map: its events feed nothing
+        ev = np.zeros(k, DVS_EVENT_DTYPE)
+        ev["x"], ev["y"] = rng.integers(0, size + 2, k), rng.integers(0, size, k)  # some x outside the face
+        ev["t"], ev["pol"] = np.sort(rng.integers(0, 30, k)), rng.random(k) < 0.5
+        per_face.append(ev)
+    got = camera_events(per_face, emap)
+    cat = np.concatenate(per_face)
+    face = np.concatenate([np.full(len(ev), i) for i, ev in enumerate(per_face)])
+    want = map_face_events(targets, width, size, face, cat["x"], cat["y"], cat["t"], cat["pol"], fanout=fan)
+    assert got.dtype == DVS_EVENT_DTYPE and got.tobytes() == want.tobytes() and len(got) > 0
+    assert camera_events([np.zeros(0, DVS_EVENT_DTYPE)] * 3, emap).shape == (0,)
+
+
+def test_events_color_is_the_net_polarity_per_pixel():
+    ev = np.zeros(6, DVS_EVENT_DTYPE)
+    ev["x"], ev["y"] = [0, 0, 1, 2, 2, 7], [0, 0, 0, 1, 1, 0]  # the last one outside a 3 x 2 image
+    ev["pol"] = [True, True, False, True, False, True]
+    img = events_color(ev, width=3, height=2)
+    assert img.shape == (2, 3, 3) and img.dtype == np.uint8
+    assert img[0, 0].tolist() == [0, 0, 255] and img[0, 1].tolist() == [255, 0, 0]
+    assert img[1, 2].tolist() == [255, 255, 255] and img[1, 0].tolist() == [255, 255, 255]  # net 0, none
 
 
 def test_npz_is_deterministic_and_numpy_readable(tmp_path, monkeypatch):
