@@ -8,9 +8,9 @@ import time
 
 import numpy as np
 
-from jaxfish.io import write_npz
 from jaxfish._constants import DVS_EVENT_DTYPE
 from jaxfish.groundtruth import EventMap
+from jaxfish.io import write_npz
 from jaxfish.pipeline import camera_events, depth_to_color, events_color, map_face_events
 
 
