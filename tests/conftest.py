@@ -1,4 +1,4 @@
-"""Shared test configuration: float64, strict dtype promotion, shared data, compiled functions."""
+"""Shared test configuration: float64, strict dtype promotion, one compile cache per run, shared data, compiled functions."""
 
 from __future__ import annotations
 
@@ -8,13 +8,24 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 import os  # noqa: E402
+import shutil  # noqa: E402
+import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-# No compile cache unless a test names one (tests/dataset/test_compile_cache.py): the suite neither
-# reads nor fills the user's cache folder, and dask workers started by tests inherit this.
-os.environ["JAXFISH_COMPILE_CACHE"] = ""
-
 import pytest  # noqa: E402
+
+TEST_COMPILE_CACHE_ENV = "JAXFISH_TEST_COMPILE_CACHE"
+"""The compile cache folder of one test run. The first process of a run (pytest, or its xdist
+controller) makes a new empty folder and names it here; its workers and every process a test starts
+(the CLI in a subprocess, dask workers) inherit the variable, so that a program compiled by any of
+them is loaded, not compiled again, by the others. The folder is removed when the run ends; the
+suite never reads or fills the user's cache folder. A loaded program is the compiled program itself:
+bytes do not depend on it (tests/dataset/test_compile_cache.py)."""
+
+_OWN_COMPILE_CACHE = TEST_COMPILE_CACHE_ENV not in os.environ
+if _OWN_COMPILE_CACHE:
+    os.environ[TEST_COMPILE_CACHE_ENV] = tempfile.mkdtemp(prefix="jaxfish_test_xla_")
+os.environ["JAXFISH_COMPILE_CACHE"] = os.environ[TEST_COMPILE_CACHE_ENV]
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 REAL_CALIBRATIONS = ("woodscape/FV", "synwoodscape/FV", "synwoodscape/MVL", "synwoodscape/MVR", "synwoodscape/RV")
@@ -26,6 +37,14 @@ def pytest_configure(config):
     # that anything is wrong (tests/dataset/test_busy_machine.py).
     config.addinivalue_line(
         "filterwarnings", "ignore:Creating scratch directories is taking a surprisingly long time:UserWarning")
+    from jaxfish.dataset import use_compile_cache
+
+    use_compile_cache(True)  # this process too: the folder of $JAXFISH_COMPILE_CACHE
+
+
+def pytest_unconfigure(config):
+    if _OWN_COMPILE_CACHE:
+        shutil.rmtree(os.environ[TEST_COMPILE_CACHE_ENV], ignore_errors=True)
 
 
 def shared_path(relative: str) -> Path:

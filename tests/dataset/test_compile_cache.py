@@ -55,9 +55,9 @@ def _child(folder: Path) -> tuple[int, str, str]:
 
 @pytest.fixture
 def cache_off():
-    """Leave this process's JAX without a cache folder after the test (the folder is deleted)."""
+    """Give this process back the test run's cache folder after the test (the test's folder is deleted)."""
     yield
-    use_compile_cache(False)
+    use_compile_cache(True)
     jax.clear_caches()
 
 

@@ -161,7 +161,10 @@ def _gated(reader, frame, out, sid):
 _build._sample_extras = _gated
 '''
 
-_CLI = "import sys; from jaxfish.cli import main; sys.argv[0] = 'jaxfish'; main()"
+# Python's own Ctrl-C handler, whatever the test run inherited: a shell runs a background job with
+# SIGINT ignored, and the build keeps an ignored SIGINT ignored.
+_CLI = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "from jaxfish.cli import main; sys.argv[0] = 'jaxfish'; main()")
 
 
 @pytest.fixture(scope="module")
@@ -187,7 +190,10 @@ def _start_gated_build(cap: Path, tmp: Path) -> tuple[subprocess.Popen, Path, Pa
     gate, out, log = tmp / "gate", tmp / "dataset", tmp / "stderr.txt"
     gate.mkdir()
     (tmp / "gate.py").write_text(_GATE)
+    # No compile cache: with one, the driver builds the first samples itself (`WARM_BATCHES`), and
+    # frame 1 must reach a gated worker.
     env = dict(os.environ, JAXFISH_TEST_GATE=str(gate), JAX_ENABLE_X64="1", JAX_NUMPY_DTYPE_PROMOTION="strict",
+               JAXFISH_COMPILE_CACHE="",
                DASK_DISTRIBUTED__WORKER__PRELOAD=json.dumps([str(tmp / "gate.py")]))
     with open(log, "wb") as err:
         proc = subprocess.Popen([sys.executable, "-c", _CLI, "build", str(cap), str(out), "--workers", "2"],
