@@ -45,7 +45,7 @@ try:
 except ImportError:  # pragma: no cover - pyspng is a dependency; OpenImageIO is the fallback
     _pyspng = None
 
-_crc32 = zlib.crc32 if _isal_zlib is None else _isal_zlib.crc32  # ISA-L's: the same CRC, ~15x faster
+_crc32 = zlib.crc32 if _isal_zlib is None else _isal_zlib.crc32  # ISA-L's: the same CRC, vectorised
 _INFLATE_ERRORS: tuple[type[Exception], ...] = (zlib.error,) if _isal_zlib is None else (zlib.error, _isal_zlib.error)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
