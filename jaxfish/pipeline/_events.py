@@ -91,7 +91,7 @@ def camera_events(events: Sequence[np.ndarray], event_map: EventMap) -> np.ndarr
         if int(x.max()) >= s or int(y.max()) >= s or int(x.min()) < 0 or int(y.min()) < 0:
             inb = (x >= 0) & (x < s) & (y >= 0) & (y < s)
         src += i * s * s
-        if inb is not None or (i + 1) * s * s > tg.shape[0]:
+        if (i + 1) * s * s > tg.shape[0]:  # a face beyond the map's (in-face pixels stay below this bound)
             inb = (src < tg.shape[0]) if inb is None else inb & (src < tg.shape[0])
         keep, counts = _feeding(fan, src, inb)
         ev_idx, flat = _copies(tg, src, keep, counts)
