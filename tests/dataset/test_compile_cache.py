@@ -55,10 +55,10 @@ def _child(folder: Path) -> tuple[int, str, str]:
 
 @pytest.fixture
 def cache_off():
-    """Give this process back the test run's cache folder after the test (the test's folder is deleted)."""
+    """Give this process back the test run's cache folder after the test (the test's folder is
+    deleted). The programs in memory stay: they are the same programs whichever folder holds them."""
     yield
     use_compile_cache(True)
-    jax.clear_caches()
 
 
 def test_a_second_process_loads_the_program_the_first_one_compiled(tmp_path):
@@ -118,8 +118,15 @@ def test_builds_with_a_cold_and_a_warm_cache_write_the_uncached_bytes(guard, sma
     _assert_recorded(guard, uncached, tmp_path / "warm", "build with a warm compile cache")
 
 
-def twice_plus_one(x):
-    return x * 2.0 + 1.0
+def _twice_plus_one():
+    """A new function object each call, the same program (named ``jit_twice_plus_one``): the next
+    call compiles it, or loads it from the compile cache, instead of finding it in memory (where
+    `jax.clear_caches` would also drop every other test's programs)."""
+
+    def twice_plus_one(x):
+        return x * 2.0 + 1.0
+
+    return jax.jit(twice_plus_one)
 
 
 def test_a_corrupt_entry_is_removed_and_compiled_again(tmp_path, cache_off):
@@ -128,20 +135,28 @@ def test_a_corrupt_entry_is_removed_and_compiled_again(tmp_path, cache_off):
     folder = tmp_path / "xla"
     use_compile_cache(folder)
     x = jax.device_put(np.arange(5.0))
-    f = jax.jit(twice_plus_one)
-    expected = np.asarray(f(x))
+    expected = np.asarray(_twice_plus_one()(x))
     (entry,) = folder.glob("jit_twice_plus_one-*-cache")
     whole = entry.read_bytes()
     entry.write_bytes(whole[: len(whole) // 2])  # a writer killed half-way (by another writer than ours)
-    jax.clear_caches()
     with pytest.warns(CompileCacheWarning, match="corrupt compile-cache entry removed"):
-        again = np.asarray(f(x))
+        again = np.asarray(_twice_plus_one()(x))
     assert (again == expected).all()
     from jax._src import compilation_cache as internal
 
     internal.decompress_executable(entry.read_bytes())  # compiled again and written whole
-    jax.clear_caches()
-    assert (np.asarray(f(x)) == expected).all()  # and loaded without a warning (warnings are errors here)
+    hits: list[str] = []
+
+    def count(name: str, **_kw) -> None:
+        if name.endswith("/cache_hits"):
+            hits.append(name)
+
+    monitoring.register_event_listener(count)
+    try:  # loaded, without a warning (warnings are errors here)
+        assert (np.asarray(_twice_plus_one()(x)) == expected).all()
+    finally:
+        monitoring.unregister_event_listener(count)
+    assert hits
 
 
 def test_concurrent_writers_and_readers_see_no_entry_or_the_whole_entry(tmp_path, cache_off):
@@ -184,14 +199,19 @@ def test_an_unusable_folder_warns_and_the_build_goes_on(small_capture, reference
     assert {p.relative_to(tmp_path / "out") for p in (tmp_path / "out").rglob("*") if p.is_file()} == ref
 
 
-def test_the_driver_of_local_process_workers_builds_the_first_samples_into_the_cache(small_capture, tmp_path,
-                                                                                      monkeypatch, cache_off):
+def test_the_driver_of_local_process_workers_builds_the_first_samples_into_the_cache(small_capture, reference_build,
+                                                                                      tmp_path, monkeypatch):
     """With a compile cache, the driver builds the first `WARM_BATCHES` samples itself (compiling
-    into the cache) and the process workers build the rest."""
+    into the cache) and the process workers build the rest. The cache is the test run's: this
+    process has compiled the small capture's programs into it already (``reference_build``), so
+    that the workers load them (a cold folder is `test_builds_with_a_cold_and_a_warm_cache...`)."""
     pytest.importorskip("distributed")
     from jaxfish.dataset import _build
 
     monkeypatch.setattr(_build, "WARM_BATCHES", 1)  # the small capture has two frames
+    # The workers run this process's JAX settings (conftest.py), so that they load its programs.
+    monkeypatch.setenv("JAX_ENABLE_X64", "1")
+    monkeypatch.setenv("JAX_NUMPY_DTYPE_PROMOTION", "strict")
     built_here: list[int] = []
     write = _build._write_sample
 
@@ -200,8 +220,8 @@ def test_the_driver_of_local_process_workers_builds_the_first_samples_into_the_c
         return write(source, out, truth, options, record)
 
     monkeypatch.setattr(_build, "_write_sample", written_here)
-    folder = tmp_path / "xla"
-    report = build_dataset(small_capture, tmp_path / "out", workers=2, options=BuildOptions(compile_cache=folder))
+    folder = use_compile_cache(True)
+    report = build_dataset(small_capture, tmp_path / "out", workers=2, options=BuildOptions(compile_cache=True))
     assert report.ok, report.summary()
     assert report.built == ["00000", "00001"] and built_here == [0]  # frame 1 on a worker
-    assert list(folder.glob("*-cache"))
+    assert folder is not None and list(folder.glob("*-cache"))

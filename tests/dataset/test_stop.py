@@ -4,9 +4,11 @@ bytes); local dask workers end with the building process, even after ``kill -9``
 
 Every wait here waits for an event (a file appears, a process exits); the time limits only guard
 against a hang. The subprocess builds are gated: a dask worker preload makes the worker that
-builds frame 1 stop for good in the middle of that sample (after its camera files, before its
-vehicle and lidar files) while holding the GIL, so the build cannot end before the test stops it,
-a sample is cut off at that moment, and only a kernel-level parent-death signal ends that worker."""
+builds frame 2 (the first frame a worker builds: with the test run's compile cache the driver
+builds frames 0 and 1 itself, `WARM_BATCHES`, and the workers load the programs it compiled) stop
+for good in the middle of that sample (after its camera files, before its vehicle and lidar files)
+while holding the GIL, so the build cannot end before the test stops it, a sample is cut off at
+that moment, and only a kernel-level parent-death signal ends that worker."""
 
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from jaxfish.dataset import BuildInterrupted, build_dataset, is_complete
+from jaxfish.dataset import BuildInterrupted, _build, build_dataset, is_complete
 from tests.helpers import assert_same_tree
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal: Linux only")
@@ -139,7 +141,7 @@ def test_local_cluster_workers_die_with_this_process_and_leave_signals_to_it(mon
 
 # --------------------------------------------------------------------------- gated subprocess builds
 _GATE = '''
-"""Dask worker preload of tests/dataset/test_stop.py: frame 1 stops for good half-way."""
+"""Dask worker preload of tests/dataset/test_stop.py: frame 2 stops for good half-way."""
 import ctypes, os, pathlib
 from jaxfish.dataset import _build
 
@@ -150,7 +152,7 @@ _build._ungated_sample_extras = _original
 
 
 def _gated(reader, frame, out, sid):
-    if frame == 1:
+    if frame == 2:
         (GATE / "reached").touch()
         pause = ctypes.PyDLL(None).pause  # holds the GIL: dask's own parent watch cannot run
         while True:
@@ -186,20 +188,22 @@ def four_frames(small_capture, tmp_path_factory):
 
 def _start_gated_build(cap: Path, tmp: Path) -> tuple[subprocess.Popen, Path, Path, Path]:
     """``jaxfish build CAP OUT --workers 2`` in its own process group, with the gate preloaded in
-    its workers; returns once sample 00000 is complete and frame 1's worker is stopped half-way."""
+    its workers; returns once samples 00000 and 00001 (the driver's) are complete and frame 2's
+    worker is stopped half-way."""
     gate, out, log = tmp / "gate", tmp / "dataset", tmp / "stderr.txt"
     gate.mkdir()
     (tmp / "gate.py").write_text(_GATE)
-    # No compile cache: with one, the driver builds the first samples itself (`WARM_BATCHES`), and
-    # frame 1 must reach a gated worker.
+    # The test run's compile cache (inherited): the driver and its workers load the programs this
+    # process compiled for the reference build (the same JAX settings).
+    assert _build.WARM_BATCHES == 2, "the gate stops the first frame a worker builds"
     env = dict(os.environ, JAXFISH_TEST_GATE=str(gate), JAX_ENABLE_X64="1", JAX_NUMPY_DTYPE_PROMOTION="strict",
-               JAXFISH_COMPILE_CACHE="",
                DASK_DISTRIBUTED__WORKER__PRELOAD=json.dumps([str(tmp / "gate.py")]))
     with open(log, "wb") as err:
         proc = subprocess.Popen([sys.executable, "-c", _CLI, "build", str(cap), str(out), "--workers", "2"],
                                 stdout=subprocess.DEVNULL, stderr=err, env=env, start_new_session=True)
-    _wait_for(lambda: (gate / "reached").exists() and is_complete(out, "00000"), "gate reached", proc, log)
-    assert _files_of(out, "00001"), "frame 1 stops after its camera files"
+    _wait_for(lambda: (gate / "reached").exists() and is_complete(out, "00000") and is_complete(out, "00001"),
+              "gate reached", proc, log)
+    assert _files_of(out, "00002"), "frame 2 stops after its camera files"
     return proc, gate, out, log
 
 
@@ -217,8 +221,8 @@ def _stop_workers(pids: list[int]) -> None:
 
 def test_ctrl_c_stops_a_dask_build_cleanly_and_it_resumes_to_the_same_bytes(four_frames, tmp_path):
     """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) while a worker is stopped
-    half-way through sample 00001: exit 130, one ``interrupted:`` line, no traceback; the workers
-    have ended when the build exits, nothing changes afterwards, sample 00001's files are gone,
+    half-way through sample 00002: exit 130, one ``interrupted:`` line, no traceback; the workers
+    have ended when the build exits, nothing changes afterwards, sample 00002's files are gone,
     sample 00000 stays; a resume gives the reference bytes."""
     cap, reference = four_frames
     proc, gate, out, log = _start_gated_build(cap, tmp_path)
@@ -238,19 +242,19 @@ def test_ctrl_c_stops_a_dask_build_cleanly_and_it_resumes_to_the_same_bytes(four
     lines = [ln for ln in stderr.splitlines() if ln.startswith("interrupted:")]
     assert len(lines) == 1 and "resume" in lines[0], stderr[-3000:]
     assert _listing(out) == at_exit
-    assert is_complete(out, "00000")
-    assert not _files_of(out, "00001"), "the cut-off sample is removed"
+    assert is_complete(out, "00000") and is_complete(out, "00001")
+    assert not _files_of(out, "00002"), "the cut-off sample is removed"
     assert not _half_written(out)
     complete = [s for s in ("00000", "00001", "00002", "00003") if is_complete(out, s)]
     assert f"{len(complete)} of 4 sample(s) complete" in lines[0]
 
     report = build_dataset(cap, out)
-    assert report.ok and set(report.skipped) == set(complete) and "00001" in report.built
+    assert report.ok and set(report.skipped) == set(complete) and "00002" in report.built
     assert_same_tree(reference, out)
 
 
 def test_kill_9_of_a_dask_build_ends_its_workers_and_it_resumes_to_the_same_bytes(four_frames, tmp_path):
-    """kill -9 of the building process while a worker is stopped half-way through sample 00001
+    """kill -9 of the building process while a worker is stopped half-way through sample 00002
     holding the GIL (dask's own watch of the parent, a thread, cannot run there): both worker
     processes end (the kernel kills them) and a resume gives the reference bytes. (No listing is
     compared at the parent's exit: a worker killed inside a write system call completes that call.)"""
@@ -263,9 +267,9 @@ def test_kill_9_of_a_dask_build_ends_its_workers_and_it_resumes_to_the_same_byte
         _wait_for(lambda: all(_ended(pid) for pid in pids), "end of the workers")
     finally:
         _stop_workers(pids)
-    assert is_complete(out, "00000") and not is_complete(out, "00001")
+    assert is_complete(out, "00000") and is_complete(out, "00001") and not is_complete(out, "00002")
     report = build_dataset(cap, out)
-    assert report.ok and "00001" in report.built
+    assert report.ok and "00002" in report.built
     assert_same_tree(reference, out)
 
 
@@ -293,8 +297,6 @@ def test_a_signal_stops_a_serial_cli_build_cleanly(small_capture, reference_buil
     exit status 130, one ``interrupted: 1 of 2`` line, no traceback, sample 00001 removed, 00000
     complete; a resume gives the reference bytes."""
     from jaxfish.cli import main
-    from jaxfish.dataset import _build
-
     original = _build._sample_extras
 
     def gated(reader, frame, out, sid):
@@ -323,8 +325,6 @@ def test_ctrl_c_stops_thread_workers_before_their_next_file(small_capture, refer
     """Thread workers (``processes=False``) share the building process: on Ctrl-C the sample they
     are writing stops before its next file and is removed; `build_dataset` raises
     `BuildInterrupted` once they have stopped."""
-    from jaxfish.dataset import _build
-
     original = _build._sample_extras
     signal.signal(signal.SIGINT, signal.default_int_handler)  # what a Python program has by default
 
