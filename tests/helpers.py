@@ -17,10 +17,12 @@ import pytest
 
 def three_ways(fn, *args):
     """``fn(*args)`` eager, under ``jax.jit``, and ``jax.vmap`` over a leading axis of size 1 (then
-    squeezed): returns the three results (pytrees of numpy arrays)."""
+    squeezed): returns the three results (pytrees of numpy arrays). The batched program is
+    compiled whole (``jax.jit(jax.vmap(fn))``): under ``vmap`` the values are tracers either way,
+    and op-by-op dispatch of a batched program would only compile each operation on its own."""
     eager = fn(*args)
     jitted = jax.jit(fn)(*args)
-    batched = jax.vmap(fn)(*[jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], a) for a in args])
+    batched = jax.jit(jax.vmap(fn))(*[jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], a) for a in args])
     batched = jax.tree_util.tree_map(lambda x: x[0], batched)
     to_np = lambda t: jax.tree_util.tree_map(np.asarray, t)  # noqa: E731
     return to_np(eager), to_np(jitted), to_np(batched)
