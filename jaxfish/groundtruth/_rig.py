@@ -127,11 +127,41 @@ def _array(x):
 
 
 def _faces_tuple(faces: Any, where: str) -> tuple:
+    """``(rgb, depth_m, semantic)`` of ``faces``: each an array stacked over the cameras, or a list
+    of per-camera arrays (one sample) stacked here into ``(C, ...)`` arrays."""
     try:
         # NumPy faces stay on the host until each camera's program reads them (slices are views).
-        return tuple(_array(getattr(faces, k)) for k in ("rgb", "depth_m", "semantic"))
+        fields = tuple(getattr(faces, k) for k in ("rgb", "depth_m", "semantic"))
     except AttributeError as e:
         raise ValueError(f"rig_ground_truth: {where} needs fields rgb, depth_m and semantic ({e})") from e
+    out = []
+    for k, f in zip(("rgb", "depth_m", "semantic"), fields, strict=True):
+        if isinstance(f, (list, tuple)):
+            parts = [_array(a) for a in f]
+            if not parts or len({(a.shape, a.dtype) for a in parts}) != 1 or parts[0].ndim != (4 if k == "rgb" else 3):
+                raise ValueError(f"rig_ground_truth: {where}.{k} as a list needs one (F, S, S{', 3' if k == 'rgb' else ''}) "
+                                 f"array per camera, all of one shape and dtype, got {[a.shape for a in parts]}")
+            out.append(_PerCamera(parts))
+        else:
+            out.append(_array(f))
+    return tuple(out)
+
+
+class _PerCamera:
+    """Per-camera arrays of one sample handed over as a list: shaped and indexed like their stack
+    ``(C, ...)`` without the copy stacking costs (`stack` makes it for the vmap mode)."""
+
+    def __init__(self, parts: list):
+        self.parts = parts
+        self.shape = (len(parts),) + parts[0].shape
+        self.ndim = len(self.shape)
+
+    def __getitem__(self, index: tuple):
+        (j,) = index
+        return self.parts[j]
+
+    def stack(self):
+        return np.stack(self.parts) if isinstance(self.parts[0], np.ndarray) else jnp.stack(self.parts)
 
 
 def rig_ground_truth(
@@ -165,7 +195,9 @@ def rig_ground_truth(
     ``cameras_to_vehicle`` (batched `Pose` ``(C,)``).
 
     Per sample: ``faces_prev`` / ``faces`` carry ``rgb``, ``depth_m`` and ``semantic`` with leading
-    axes ``(C, F, S, S)`` for one sample, or ``(N, C, F, S, S)`` for ``N`` samples; the boxes
+    axes ``(C, F, S, S)`` for one sample (or, each field, a list of one ``(F, S, S)`` array per
+    camera: with ``batch="loop"`` the cameras' faces are read where they are, never copied into
+    one stack), or ``(N, C, F, S, S)`` for ``N`` samples; the boxes
     (same actors at t-1 and t) and the ego poses are then unbatched, or carry a leading ``N``
     (boxes padded to one size with ``boxes_from_actors(..., pad_to=)``).
 
@@ -205,6 +237,7 @@ def rig_ground_truth(
         rays = (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
     reach = float(max(margin_m, fallback_m))
     if mode == "vmap":
+        fp, fc = (tuple(x.stack() if isinstance(x, _PerCamera) else x for x in xs) for xs in (fp, fc))
         if single:
             fp, fc = (tuple(x[None] for x in fp), tuple(x[None] for x in fc))
             samples = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], samples)
@@ -237,7 +270,7 @@ def rig_ground_truth(
     for i in range(n):
         smp = samples if single else _at(samples, i)
         index = [(j,) if single else (i, j) for j in range(c)]
-        rows.append([one(per_camera[j], smp, jax.tree_util.tree_map(lambda x, k=index[j]: x[k], (fp, fc)))
+        rows.append([one(per_camera[j], smp, tuple(tuple(x[index[j]] for x in xs) for xs in (fp, fc)))
                      for j in range(c)])
     if not stacked:
         return rows[0] if single else rows

@@ -170,20 +170,24 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
     cams = constants.cameras
     n, c = len(frames), len(cams)
 
-    def stack(instant: str, key: str) -> np.ndarray:  # one copy into an (N, C, F, S, S[, 3]) array
+    def stack(instant: str, key: str) -> np.ndarray | list:
+        """One sample: the cameras' arrays as they are (a list); several: one copy into an
+        ``(N, C, F, S, S[, 3])`` array."""
         parts = [getattr(getattr(cf, instant), key) for f in frames for cf in f.camera_frames]
-        return np.stack(parts).reshape((n, c) + parts[0].shape)
+        return parts if n == 1 else np.stack(parts).reshape((n, c) + parts[0].shape)
 
     prev, curr = ({k: stack(inst, k) for k in ("rgb", "depth_m", "semantic")} for inst in ("faces_prev", "faces"))
     c2v = Pose(np.stack([np.asarray(k.camera_to_vehicle.rotation_matrix, np.float32) for k in cams]),
                np.stack([np.asarray(k.camera_to_vehicle.translation, np.float32) for k in cams]))
     per_sample = jax.tree_util.tree_map(
-        lambda *xs: np.stack([np.asarray(x) for x in xs]),
+        lambda *xs: np.asarray(xs[0]) if n == 1 else np.stack([np.asarray(x) for x in xs]),
         *[(m.boxes_prev, m.boxes, m.vehicle_to_world_prev, m.vehicle_to_world) for m in motions])
     rows = gt.rig_ground_truth(
         [k.lut for k in cams], [k.camera for k in cams], c2v, _Faces(**prev), _Faces(**curr), *per_sample,
         rays=[k.rays for k in cams], carla_version=frames[0].carla_tags, batch=options.batch, stacked=False,
         **options.ground_truth_keywords())
+    if n == 1:
+        rows = [rows]  # one sample: the list of its cameras
     return [[_camera_truth(k.name, k.camera, k.rays, truth, camera_events(cf.events, k.event_map), options.backward_flow)
              for k, cf, truth in zip(cams, f.camera_frames, row, strict=True)]
             for f, row in zip(frames, rows, strict=True)]

@@ -102,6 +102,19 @@ def test_one_sample_equals_each_camera(batch, batch_mode):
     assert np.any(np.asarray(out.instances.actor_id) > 0)  # the sample has instances to compare
 
 
+@pytest.mark.parametrize("batch_mode", ["loop", "vmap"])
+def test_per_camera_lists_of_faces_equal_the_stacked_faces(batch, batch_mode):
+    """One sample's faces handed over as one array per camera (what the pipeline does: no copy into
+    one stack) give each camera's ground truth."""
+    fp, fc, bp, bc, vp, vc = _sample(batch, 1)
+    listed = lambda f: type(f)(*(None if x is None else list(x) for x in dataclasses.astuple(f)))  # noqa: E731
+    rows = gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, listed(fp), listed(fc), bp, bc, vp, vc,
+                               backward_flow=True, batch=batch_mode, stacked=False)
+    assert len(rows) == len(CAMERAS)
+    for j in range(len(CAMERAS)):
+        _assert_same(rows[j], batch.reference[1][j])
+
+
 def test_batch_of_samples_unstacked_in_loop_mode(batch):
     boxes_prev = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *batch.boxes_prev)
     boxes = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *batch.boxes)
@@ -135,6 +148,9 @@ def test_errors_name_the_argument(batch):
         gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, fp, fc, bp, bc, vp, vc, batch="threads")
     with pytest.raises(ValueError, match="faces_prev"):
         gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, object(), fc, bp, bc, vp, vc)
+    ragged = type(fc)(*(None if x is None else [x[0], x[1][:-1]] for x in dataclasses.astuple(fc)))
+    with pytest.raises(ValueError, match="faces.rgb as a list needs one"):
+        gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, fp, ragged, bp, bc, vp, vc, batch="loop")
     with pytest.raises(ValueError, match="samples"):  # one sample of faces, two of boxes
         stacked = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *batch.boxes)
         gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, batch.faces_prev, batch.faces, stacked, stacked,
