@@ -35,6 +35,7 @@ MODEL_PX_F64 = 1e-9  # projection vs an independent closed form / round trips, p
 MODEL_RAY_F64 = 1e-12  # unit-ray components after a round trip
 MODEL_PX_F32 = 2e-3  # float32 pixel -> ray -> pixel
 EAGER_JIT_PX_F32 = 1e-5  # one float32 projection eager vs jit / vmap (XLA may fuse into FMAs: ulps)
+EAGER_JIT_REL_F32 = 1e-6  # the same, relative: pixels of huge (~1e24) points differ by float32 ulps (~1e-7)
 # Refitting and model conversion.
 CONVERT_EXACT_PX = 1e-7  # conversions that have an exact solution (WoodScape k2 = k4 = 0 <-> KB)
 REFIT_SIGMA_BOUND = 4.0  # recovered parameters within this many estimated standard deviations
