@@ -92,4 +92,35 @@ def assert_same_tree(a: Path, b: Path) -> None:
     ta, tb = tree_bytes(a), tree_bytes(b)
     assert sorted(ta) == sorted(tb)
     differ = [k for k in ta if ta[k] != tb[k]]
-    assert not differ, f"files differ: {differ[:10]}"
+    assert not differ, f"files differ: {describe_differences(a, b, differ)}"
+
+
+def describe_differences(a: Path, b: Path, names: list[str], limit: int = 10) -> list[str]:
+    """What differs between the files ``names`` (relative paths) of ``a`` and ``b``: for images
+    and arrays that decode to the same shape, how many elements differ and a few of them (the
+    failure message of a byte comparison; a bare file name says too little to find a cause)."""
+    from jaxfish.io import read_image
+
+    out = []
+    for name in names[:limit]:
+        pa, pb = a / name, b / name
+        try:
+            if name.endswith(".npy"):
+                xa, xb = np.load(pa, allow_pickle=False), np.load(pb, allow_pickle=False)
+            elif name.endswith((".png", ".exr")):
+                xa, xb = np.asarray(read_image(pa)), np.asarray(read_image(pb))
+            else:
+                out.append(f"{name}: {pa.stat().st_size} / {pb.stat().st_size} bytes")
+                continue
+        except Exception as e:  # noqa: BLE001 - a description, never the failure itself
+            out.append(f"{name}: not decoded ({type(e).__name__}: {e})")
+            continue
+        if xa.shape != xb.shape or xa.dtype != xb.dtype:
+            out.append(f"{name}: {xa.dtype}{xa.shape} / {xb.dtype}{xb.shape}")
+            continue
+        diff = np.argwhere(xa != xb) if xa.dtype.names is None else np.argwhere(xa.view(np.uint8) != xb.view(np.uint8))
+        where = [tuple(int(i) for i in d) for d in diff[:3]]
+        out.append(f"{name}: {len(diff)} of {xa.size} elements differ, first at {where}: "
+                   f"{[xa[w].tolist() for w in where]} / {[xb[w].tolist() for w in where]}"
+                   if xa.dtype.names is None else f"{name}: {len(diff)} bytes differ")
+    return out + ([f"... and {len(names) - limit} more"] if len(names) > limit else [])

@@ -69,7 +69,7 @@ from jaxfish.scene import (
     sensor_mounts,
 )
 from jaxfish.transforms import Pose, carla_camera_pose_to_opencv, carla_rotation_matrix
-from tests.helpers import tree_bytes
+from tests.helpers import describe_differences, tree_bytes
 from tests.tolerances import CARLA_HEIGHT_FROM_DEPTH_M, POSE_F64
 
 # The sizes of tests/io/test_capture.py's capture: the embedded scene's compiled renderers are shared.
@@ -979,7 +979,8 @@ def test_the_online_mode_builds_from_the_frames_the_offline_capture_reads_back(s
         for name in [n for n in files if n == "dataset.json" or n.startswith(".done/")]:
             del files[name]
     assert sorted(online_files) == sorted(offline_files) and len(online_files) > 20
-    assert [n for n in online_files if online_files[n] != offline_files[n]] == []
+    differ = [n for n in online_files if online_files[n] != offline_files[n]]
+    assert differ == [], describe_differences(tmp_path / "build" / "WetSunset", tmp_path / "offline", differ)
 
 
 def test_the_online_mode_refuses_a_folder_it_cannot_build_into(script, tmp_path, monkeypatch, capsys):

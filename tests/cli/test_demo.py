@@ -52,7 +52,7 @@ def test_demo_renders_builds_and_draws_contact_sheets(tmp_path):
 def test_demo_write_capture_builds_the_same_dataset_from_files(tmp_path):
     """``--write-capture`` renders to OUT/capture and builds from it: the same sample bytes as the
     in-memory demo (the markers and dataset.json name their source)."""
-    from tests.helpers import tree_bytes
+    from tests.helpers import describe_differences, tree_bytes
 
     mem, disk = tmp_path / "mem", tmp_path / "disk"
     base = ["--frames", "1", "--scale", "0.05", "--seed", "1"]
@@ -62,7 +62,8 @@ def test_demo_write_capture_builds_the_same_dataset_from_files(tmp_path):
     assert (disk / "capture" / "capture.json").is_file()
     a, b = tree_bytes(mem / "dataset"), tree_bytes(disk / "dataset")
     assert sorted(a) == sorted(b)
-    assert sorted(k for k in a if a[k] != b[k]) == [".done/00000.json", "dataset.json"]
+    differ = sorted(k for k in a if a[k] != b[k])
+    assert differ == [".done/00000.json", "dataset.json"], describe_differences(mem / "dataset", disk / "dataset", differ)
     assert tree_bytes(mem / "contact_sheets") == tree_bytes(disk / "contact_sheets")
 
 
