@@ -128,7 +128,7 @@ def _array(x):
 
 def _faces_tuple(faces: Any, where: str) -> tuple:
     """``(rgb, depth_m, semantic)`` of ``faces``: each an array stacked over the cameras, or a list
-    of per-camera arrays (one sample) stacked here into ``(C, ...)`` arrays."""
+    of per-camera arrays of one sample, held as a `_PerCamera` (not copied)."""
     try:
         # NumPy faces stay on the host until each camera's program reads them (slices are views).
         fields = tuple(getattr(faces, k) for k in ("rgb", "depth_m", "semantic"))
