@@ -4,9 +4,9 @@ bytes); local dask workers end with the building process, even after ``kill -9``
 
 Every wait here waits for an event (a file appears, a process exits); the time limits only guard
 against a hang. The subprocess builds are gated: a dask worker preload makes the worker that
-builds frame 2 (the first frame a worker builds: with the test run's compile cache the driver
-builds frames 0 and 1 itself, `WARM_BATCHES`, and the workers load the programs it compiled) stop
-for good in the middle of that sample (after its camera files, before its vehicle and lidar files)
+builds frame `GATED` (the first frame a worker builds: with the test run's compile cache the
+driver builds the frames before it itself, `WARM_BATCHES`, and the workers load the programs it
+compiled) stop for good in the middle of that sample (after its camera files, before its vehicle and lidar files)
 while holding the GIL, so the build cannot end before the test stops it, a sample is cut off at
 that moment, and only a kernel-level parent-death signal ends that worker."""
 
@@ -25,10 +25,15 @@ from pathlib import Path
 
 import pytest
 
-from jaxfish.dataset import BuildInterrupted, _build, build_dataset, is_complete
+from jaxfish.dataset import BuildInterrupted, _build, build_dataset, is_complete, sample_id
 from tests.helpers import assert_same_tree
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal: Linux only")
+
+GATED = _build.WARM_BATCHES
+"""The frame a gated worker stops in: the first one the driver leaves to its workers."""
+DRIVER_SAMPLES = [sample_id(f) for f in range(GATED)]
+CUT = sample_id(GATED)
 
 HANG_GUARD_S = 1800.0
 """Only guards against a hang: a gated build compiles for minutes on a loaded 2-core machine."""
@@ -141,7 +146,7 @@ def test_local_cluster_workers_die_with_this_process_and_leave_signals_to_it(mon
 
 # --------------------------------------------------------------------------- gated subprocess builds
 _GATE = '''
-"""Dask worker preload of tests/dataset/test_stop.py: frame 2 stops for good half-way."""
+"""Dask worker preload of tests/dataset/test_stop.py: frame WARM_BATCHES stops for good half-way."""
 import ctypes, os, pathlib
 from jaxfish.dataset import _build
 
@@ -152,7 +157,7 @@ _build._ungated_sample_extras = _original
 
 
 def _gated(reader, frame, out, sid):
-    if frame == 2:
+    if frame == _build.WARM_BATCHES:  # the first frame the driver leaves to its workers
         (GATE / "reached").touch()
         pause = ctypes.PyDLL(None).pause  # holds the GIL: dask's own parent watch cannot run
         while True:
@@ -170,15 +175,17 @@ _CLI = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_han
 
 
 @pytest.fixture(scope="module")
-def four_frames(small_capture, tmp_path_factory):
-    """The small capture with frames 2 and 3 (copies of 0 and 1), and its serial reference build."""
+def dask_capture(small_capture, tmp_path_factory):
+    """The small capture with frames up to ``GATED + 1`` (copies of frames 0 and 1: the driver's,
+    the gated one and one more), and its serial reference build."""
     root = tmp_path_factory.mktemp("stop_capture")
     cap = root / "capture"
     shutil.copytree(small_capture, cap)
-    for src, dst in ((0, 2), (1, 3)):
-        shutil.copytree(cap / "frames" / f"{src:06d}", cap / "frames" / f"{dst:06d}")
+    frames = list(range(GATED + 2))
+    for dst in frames[2:]:
+        shutil.copytree(cap / "frames" / f"{dst % 2:06d}", cap / "frames" / f"{dst:06d}")
     meta = json.loads((cap / "capture.json").read_text())
-    meta["frames"] = [0, 1, 2, 3]
+    meta["frames"] = frames
     (cap / "capture.json").write_text(json.dumps(meta))
     reference = root / "reference"
     report = build_dataset(cap, reference)
@@ -188,22 +195,21 @@ def four_frames(small_capture, tmp_path_factory):
 
 def _start_gated_build(cap: Path, tmp: Path) -> tuple[subprocess.Popen, Path, Path, Path]:
     """``jaxfish build CAP OUT --workers 2`` in its own process group, with the gate preloaded in
-    its workers; returns once samples 00000 and 00001 (the driver's) are complete and frame 2's
-    worker is stopped half-way."""
+    its workers; returns once the driver's samples are complete and frame `GATED`'s worker is
+    stopped half-way."""
     gate, out, log = tmp / "gate", tmp / "dataset", tmp / "stderr.txt"
     gate.mkdir()
     (tmp / "gate.py").write_text(_GATE)
     # The test run's compile cache (inherited): the driver and its workers load the programs this
     # process compiled for the reference build (the same JAX settings).
-    assert _build.WARM_BATCHES == 2, "the gate stops the first frame a worker builds"
     env = dict(os.environ, JAXFISH_TEST_GATE=str(gate), JAX_ENABLE_X64="1", JAX_NUMPY_DTYPE_PROMOTION="strict",
                DASK_DISTRIBUTED__WORKER__PRELOAD=json.dumps([str(tmp / "gate.py")]))
     with open(log, "wb") as err:
         proc = subprocess.Popen([sys.executable, "-c", _CLI, "build", str(cap), str(out), "--workers", "2"],
                                 stdout=subprocess.DEVNULL, stderr=err, env=env, start_new_session=True)
-    _wait_for(lambda: (gate / "reached").exists() and is_complete(out, "00000") and is_complete(out, "00001"),
+    _wait_for(lambda: (gate / "reached").exists() and all(is_complete(out, s) for s in DRIVER_SAMPLES),
               "gate reached", proc, log)
-    assert _files_of(out, "00002"), "frame 2 stops after its camera files"
+    assert _files_of(out, CUT), "the gated frame stops after its camera files"
     return proc, gate, out, log
 
 
@@ -219,12 +225,12 @@ def _stop_workers(pids: list[int]) -> None:
             os.kill(pid, signal.SIGKILL)
 
 
-def test_ctrl_c_stops_a_dask_build_cleanly_and_it_resumes_to_the_same_bytes(four_frames, tmp_path):
+def test_ctrl_c_stops_a_dask_build_cleanly_and_it_resumes_to_the_same_bytes(dask_capture, tmp_path):
     """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) while a worker is stopped
-    half-way through sample 00002: exit 130, one ``interrupted:`` line, no traceback; the workers
-    have ended when the build exits, nothing changes afterwards, sample 00002's files are gone,
-    sample 00000 stays; a resume gives the reference bytes."""
-    cap, reference = four_frames
+    half-way through sample `CUT`: exit 130, one ``interrupted:`` line, no traceback; the workers
+    have ended when the build exits, nothing changes afterwards, sample `CUT`'s files are gone,
+    the driver's samples stay; a resume gives the reference bytes."""
+    cap, reference = dask_capture
     proc, gate, out, log = _start_gated_build(cap, tmp_path)
     pids = _worker_pids(gate)
     try:
@@ -242,23 +248,24 @@ def test_ctrl_c_stops_a_dask_build_cleanly_and_it_resumes_to_the_same_bytes(four
     lines = [ln for ln in stderr.splitlines() if ln.startswith("interrupted:")]
     assert len(lines) == 1 and "resume" in lines[0], stderr[-3000:]
     assert _listing(out) == at_exit
-    assert is_complete(out, "00000") and is_complete(out, "00001")
-    assert not _files_of(out, "00002"), "the cut-off sample is removed"
+    assert all(is_complete(out, s) for s in DRIVER_SAMPLES)
+    assert not _files_of(out, CUT), "the cut-off sample is removed"
     assert not _half_written(out)
-    complete = [s for s in ("00000", "00001", "00002", "00003") if is_complete(out, s)]
-    assert f"{len(complete)} of 4 sample(s) complete" in lines[0]
+    samples = [sample_id(f) for f in range(GATED + 2)]
+    complete = [s for s in samples if is_complete(out, s)]
+    assert f"{len(complete)} of {len(samples)} sample(s) complete" in lines[0]
 
     report = build_dataset(cap, out)
-    assert report.ok and set(report.skipped) == set(complete) and "00002" in report.built
+    assert report.ok and set(report.skipped) == set(complete) and CUT in report.built
     assert_same_tree(reference, out)
 
 
-def test_kill_9_of_a_dask_build_ends_its_workers_and_it_resumes_to_the_same_bytes(four_frames, tmp_path):
-    """kill -9 of the building process while a worker is stopped half-way through sample 00002
+def test_kill_9_of_a_dask_build_ends_its_workers_and_it_resumes_to_the_same_bytes(dask_capture, tmp_path):
+    """kill -9 of the building process while a worker is stopped half-way through sample `CUT`
     holding the GIL (dask's own watch of the parent, a thread, cannot run there): both worker
     processes end (the kernel kills them) and a resume gives the reference bytes. (No listing is
     compared at the parent's exit: a worker killed inside a write system call completes that call.)"""
-    cap, reference = four_frames
+    cap, reference = dask_capture
     proc, gate, out, log = _start_gated_build(cap, tmp_path)
     pids = _worker_pids(gate)
     try:
@@ -267,9 +274,9 @@ def test_kill_9_of_a_dask_build_ends_its_workers_and_it_resumes_to_the_same_byte
         _wait_for(lambda: all(_ended(pid) for pid in pids), "end of the workers")
     finally:
         _stop_workers(pids)
-    assert is_complete(out, "00000") and is_complete(out, "00001") and not is_complete(out, "00002")
+    assert all(is_complete(out, s) for s in DRIVER_SAMPLES) and not is_complete(out, CUT)
     report = build_dataset(cap, out)
-    assert report.ok and "00002" in report.built
+    assert report.ok and CUT in report.built
     assert_same_tree(reference, out)
 
 
