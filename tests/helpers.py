@@ -14,6 +14,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+TEST_JAX_ENV = {"JAX_ENABLE_X64": "1", "JAX_NUMPY_DTYPE_PROMOTION": "strict"}
+"""tests/conftest.py's JAX settings as environment variables, for the processes a test starts (a
+CLI subprocess, dask workers): the same programs as the test process, so that they load its
+compiled programs from the run's compile cache."""
+
 
 def three_ways(fn, *args):
     """``fn(*args)`` eager, under ``jax.jit``, and ``jax.vmap`` over a leading axis of size 1 (then

@@ -25,6 +25,7 @@ from jaxfish.dataset import (
     default_compile_cache,
     use_compile_cache,
 )
+from tests.helpers import TEST_JAX_ENV
 
 from .test_build_bytes import _assert_recorded, guard  # noqa: F401 - the guard fixture
 
@@ -210,8 +211,8 @@ def test_the_driver_of_local_process_workers_builds_the_first_samples_into_the_c
 
     monkeypatch.setattr(_build, "WARM_BATCHES", 1)  # the small capture has two frames
     # The workers run this process's JAX settings (conftest.py), so that they load its programs.
-    monkeypatch.setenv("JAX_ENABLE_X64", "1")
-    monkeypatch.setenv("JAX_NUMPY_DTYPE_PROMOTION", "strict")
+    for name, value in TEST_JAX_ENV.items():
+        monkeypatch.setenv(name, value)
     built_here: list[int] = []
     write = _build._write_sample
 

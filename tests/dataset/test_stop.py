@@ -26,7 +26,7 @@ from pathlib import Path
 import pytest
 
 from jaxfish.dataset import BuildInterrupted, _build, build_dataset, is_complete, sample_id
-from tests.helpers import assert_same_tree
+from tests.helpers import TEST_JAX_ENV, assert_same_tree
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal: Linux only")
 
@@ -202,7 +202,7 @@ def _start_gated_build(cap: Path, tmp: Path) -> tuple[subprocess.Popen, Path, Pa
     (tmp / "gate.py").write_text(_GATE)
     # The test run's compile cache (inherited): the driver and its workers load the programs this
     # process compiled for the reference build (the same JAX settings).
-    env = dict(os.environ, JAXFISH_TEST_GATE=str(gate), JAX_ENABLE_X64="1", JAX_NUMPY_DTYPE_PROMOTION="strict",
+    env = dict(os.environ, **TEST_JAX_ENV, JAXFISH_TEST_GATE=str(gate),
                DASK_DISTRIBUTED__WORKER__PRELOAD=json.dumps([str(tmp / "gate.py")]))
     with open(log, "wb") as err:
         proc = subprocess.Popen([sys.executable, "-c", _CLI, "build", str(cap), str(out), "--workers", "2"],
