@@ -232,6 +232,7 @@ class CaptureSource:
         ``sensors=False`` (then None). A missing or malformed file raises
         `jaxfish.io.CaptureError` naming it."""
         from ..io import CaptureError
+        from ..io._capture import face_stacks
 
         reader = self.reader
         actors = reader.actors(index)  # names the frame when it is missing
@@ -242,15 +243,32 @@ class CaptureSource:
             raise CaptureError(f"{reader.root}: frame {index}: malformed actors.json / ego.json ({e})") from e
         names = self.cameras if cameras else []
         faces = list(reader.faces)
-        jobs = [(c, inst, face) for inst in ("prev", "curr") for c in names for face in faces]
+        size = reader.meta.get("face_size")
+        # Each camera's faces at each instant are decoded straight into one stack per image kind
+        # (without ``face_size``: decoded alone, then stacked).
+        stacks = {(c, inst): None if size is None else face_stacks(len(faces), int(size))
+                  for inst in ("prev", "curr") for c in names}
+        jobs = [(c, inst, i) for inst in ("prev", "curr") for c in names for i in range(len(faces))]
+
+        def decode(job: tuple[str, str, int]):
+            c, inst, i = job
+            out = stacks[(c, inst)]
+            return reader.face(index, c, faces[i], inst, actor_ids=False,
+                               out=None if out is None else (out[0][i], out[1][i], out[2][i]))
+
         # PNG decoding releases the GIL: every face of every camera in one pool of threads.
         with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, _usable_cores()))) as pool:
-            imgs = dict(zip(jobs, pool.map(lambda j: reader.face(index, j[0], j[2], j[1], actor_ids=False), jobs),
-                            strict=True))
+            imgs = dict(zip(jobs, pool.map(decode, jobs), strict=True))
 
         def cube(c: str, inst: str) -> CubeFaces:
-            return CubeFaces(*(np.stack([getattr(imgs[(c, inst, f)], k) for f in faces])
-                               for k in ("rgb", "depth_m", "semantic")))
+            out = stacks[(c, inst)]
+            if out is None:
+                out = tuple(np.stack([getattr(imgs[(c, inst, i)], k) for i in range(len(faces))])
+                            for k in ("rgb", "depth_m", "semantic"))
+            elif self.reuse_decoded:
+                for a in out:  # their curr faces are kept for the next frame's prev (`CaptureReader`)
+                    a.setflags(write=False)
+            return CubeFaces(*out)
 
         camera_frames = tuple(CameraFrame(cube(c, "prev"), cube(c, "curr"), tuple(reader.dvs(index, c, f) for f in faces))
                               for c in names)

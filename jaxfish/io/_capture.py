@@ -48,7 +48,7 @@ from ._carla import (
     rgb_to_bgra,
 )
 from ._folder import is_temporary
-from ._images import read_image, write_image
+from ._images import decode_image_bytes, read_image, write_image
 from ._json import read_json, regular_file, write_json
 
 CAPTURE_FORMAT = "jaxfish-capture"
@@ -122,30 +122,36 @@ def write_images(directory: Path, images: CameraImages, instant: str) -> None:
 
 
 def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = True,
-                reuse: tuple[str, ...] | None = None, size: tuple[int, int] | None = None) -> CameraImages:
+                reuse: tuple[str, ...] | None = None, size: tuple[int, int] | None = None,
+                out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> CameraImages:
     """Read back what `write_images` wrote (RGB uint8, depth metres float32, tags, actor ids).
     ``actor_ids=False`` skips the instance PNG (`CameraImages.actor_id` is then None): the ground
     truth never reads it (instances come from the 3D boxes). ``reuse``: a key naming the sensor
     (e.g. ``(capture root, camera, face)``) under which decoded ``curr`` images are kept, so that
     a later ``prev`` image that is a byte copy of them (consecutive ticks: see `CaptureReader`) is
     not decoded again; the arrays returned are then read-only. ``size``: the ``(H, W)`` every image
-    must have. A wrong size or pixel type raises `CaptureError` naming the file; a depth, semantic
-    or instance file that is not a PNG (e.g. a JPEG renamed ``.png``: lossy labels and depth) and
-    any path that is not a regular file (a FIFO, a directory) raise `ImageError` naming it."""
+    must have. ``out``: writable ``(rgb (H, W, 3) uint8, depth (H, W) float32, semantic (H, W)
+    uint8)`` arrays (e.g. one face of a camera's stack) the images are decoded into, and returned
+    in `CameraImages` (as read-only views with ``reuse``: a kept ``curr`` image is a view of
+    ``out``, which the caller must then leave unchanged). A wrong size or pixel type raises `CaptureError` naming the file; a depth,
+    semantic or instance file that is not a PNG (e.g. a JPEG renamed ``.png``: lossy labels and
+    depth) and any path that is not a regular file (a FIFO, a directory) raise `ImageError` naming
+    it."""
     if instant not in INSTANTS:
         raise CaptureError(f"{directory}: instant must be one of {INSTANTS}, got {instant!r}")
 
-    def load(kind: str, decode):
+    def load(kind: str, decode, dst: np.ndarray | None):
         path = directory / f"{kind}_{instant}.png"
-        checked = _checked(decode, path, size)
+        checked = _checked(decode, path, size, dst)
         lossless = kind != "rgb"  # labels and encoded depth: a lossy file would read wrong values
         if reuse is None:
             return checked(read_image(path, lossless=lossless))
-        return _decoded_reusing(path, reuse + (kind,), instant, checked, lossless=lossless)
+        return _decoded_reusing(path, reuse + (kind,), instant, checked, lossless=lossless, out=dst)
 
-    rgb = load("rgb", bgra_to_rgb)
-    depth = load("depth", decode_depth)
-    sem = load("semantic", decode_semantic)
+    rgb_out, depth_out, sem_out = (None, None, None) if out is None else out
+    rgb = load("rgb", bgra_to_rgb, rgb_out)
+    depth = load("depth", decode_depth, depth_out)
+    sem = load("semantic", decode_semantic, sem_out)
     if not actor_ids:
         return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=None)  # type: ignore[arg-type]
     path = directory / f"instance_{instant}.png"
@@ -153,14 +159,25 @@ def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = Tru
     return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=ids.astype(np.int32))
 
 
-def _checked(decode, path: Path, size: tuple[int, int] | None):
-    """``decode`` of the pixels of ``path``, with its size checked and its errors naming the file."""
+def face_stacks(faces: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Empty ``(faces, size, size)`` stacks `read_images` decodes a camera's faces into (``out``):
+    RGB ``(..., 3)`` uint8, depth float32 metres, semantic tags uint8."""
+    return (np.empty((faces, size, size, 3), np.uint8), np.empty((faces, size, size), np.float32),
+            np.empty((faces, size, size), np.uint8))
+
+
+def _checked(decode, path: Path, size: tuple[int, int] | None, out: np.ndarray | None = None):
+    """``decode`` of the pixels of ``path`` (into ``out`` when given), with its size checked and its
+    errors naming the file."""
     def run(pixels: np.ndarray):
         if size is not None and tuple(pixels.shape[:2]) != tuple(size):
             raise CaptureError(f"{path}: image is {pixels.shape[1]}x{pixels.shape[0]}, expected {size[1]}x{size[0]} "
                                "(capture.json 'face_size' / sensors.json)")
+        if out is not None and tuple(pixels.shape[:2]) != out.shape[:2]:
+            raise CaptureError(f"{path}: image is {pixels.shape[1]}x{pixels.shape[0]}, expected "
+                               f"{out.shape[1]}x{out.shape[0]} (the size of the capture's other images)")
         try:
-            return decode(pixels)
+            return decode(pixels) if out is None else decode(pixels, out)
         except ImageError as e:
             raise CaptureError(f"{path}: {e}") from None
     return run
@@ -172,9 +189,11 @@ _LAST_CURR: dict[tuple[str, ...], tuple[bytes, np.ndarray]] = {}
 _LAST_CURR_LOCK = threading.Lock()
 
 
-def _decoded_reusing(path: Path, key: tuple[str, ...], instant: str, decode, *, lossless: bool = False) -> np.ndarray:
+def _decoded_reusing(path: Path, key: tuple[str, ...], instant: str, decode, *, lossless: bool = False,
+                     out: np.ndarray | None = None) -> np.ndarray:
     """``decode(read_image(path))``, except that a ``prev`` file whose bytes equal the last ``curr``
-    file read under ``key`` returns that decoded array (an exact byte comparison, never a guess)."""
+    file read under ``key`` returns that decoded array (an exact byte comparison, never a guess),
+    or copies it into ``out`` when given (the array ``decode`` also writes into)."""
     try:
         regular_file(path, ImageError, "image file")  # a FIFO would block read_bytes forever
         data = path.read_bytes()
@@ -183,10 +202,15 @@ def _decoded_reusing(path: Path, key: tuple[str, ...], instant: str, decode, *, 
     if instant == "prev":
         with _LAST_CURR_LOCK:
             hit = _LAST_CURR.get(key)
-        if hit is not None and hit[0] == data:
-            return hit[1]
-        return decode(read_image(path, lossless=lossless))
-    arr = decode(read_image(path, lossless=lossless))
+        if hit is not None and hit[0] == data and (out is None or hit[1].shape == out.shape):
+            if out is None:
+                return hit[1]
+            np.copyto(out, hit[1])
+            return out
+        return decode(decode_image_bytes(path, data, lossless=lossless))
+    arr = decode(decode_image_bytes(path, data, lossless=lossless))
+    if out is not None:
+        arr = arr.view()  # the caller's array stays writable; the kept view is not
     arr.setflags(write=False)  # shared with later readers
     with _LAST_CURR_LOCK:
         _LAST_CURR[key] = (data, arr)
@@ -534,21 +558,37 @@ class CaptureReader:
         _check_actors(doc["actors"], path)
         return doc["actors"]
 
-    def face(self, frame: int, camera: str, face: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
-        """One cube face's images at ``"prev"`` (t-1) or ``"curr"`` (t) (``actor_ids``: see `read_images`)."""
+    def face(self, frame: int, camera: str, face: str, instant: str = "curr", *, actor_ids: bool = True,
+             out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> CameraImages:
+        """One cube face's images at ``"prev"`` (t-1) or ``"curr"`` (t) (``actor_ids``, ``out``:
+        see `read_images`)."""
         reuse = None if self._reuse_key is None else self._reuse_key + (camera, face)
         size = self.meta.get("face_size")
         return read_images(self._frame(frame) / "cameras" / camera / face, instant, actor_ids=actor_ids, reuse=reuse,
-                           size=None if size is None else (size, size))
+                           size=None if size is None else (size, size), out=out)
 
     def faces_stack(self, frame: int, camera: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """All faces of a camera stacked on a leading face axis (the `CubeRig` order of `faces`);
-        ``actor_ids=False`` skips the instance PNGs (`CameraImages.actor_id` None)."""
+        ``actor_ids=False`` skips the instance PNGs (`CameraImages.actor_id` None). With
+        ``capture.json``'s ``face_size`` the RGB, depth and semantic images are decoded straight
+        into the stacks (read-only with ``reuse_decoded=True``, as `face`'s arrays)."""
+        size = self.meta.get("face_size")
+        stacks = None if size is None else face_stacks(len(self.faces), int(size))
+
+        def read(i: int) -> CameraImages:
+            return self.face(frame, camera, self.faces[i], instant, actor_ids=actor_ids,
+                             out=None if stacks is None else tuple(a[i] for a in stacks))
+
         # Decoding PNGs releases the GIL, so the faces are read in a thread pool.
         with concurrent.futures.ThreadPoolExecutor(max(1, min(len(self.faces), _usable_cores()))) as pool:
-            imgs = list(pool.map(lambda f: self.face(frame, camera, f, instant, actor_ids=actor_ids), self.faces))
-        return CameraImages(*(None if getattr(imgs[0], k) is None else np.stack([getattr(i, k) for i in imgs])
-                              for k in ("rgb", "depth_m", "semantic", "actor_id")))
+            imgs = list(pool.map(read, range(len(self.faces))))
+        ids = None if imgs[0].actor_id is None else np.stack([i.actor_id for i in imgs])
+        if stacks is None:
+            stacks = tuple(np.stack([getattr(i, k) for i in imgs]) for k in ("rgb", "depth_m", "semantic"))
+        elif self._reuse_key is not None:
+            for a in stacks:  # their curr faces are kept for later readers (`read_images`'s ``reuse``)
+                a.setflags(write=False)
+        return CameraImages(*stacks, ids)
 
     def dvs(self, frame: int, camera: str, face: str) -> np.ndarray:
         """DVS events of a face between t-1 and t (`DVS_EVENT_DTYPE`, t in ns); an event outside

@@ -29,10 +29,23 @@ def _check_bgra(bgra: np.ndarray, what: str) -> np.ndarray:
     return a
 
 
-def bgra_to_rgb(bgra: np.ndarray) -> np.ndarray:
-    """CARLA BGRA (or BGR) uint8 -> RGB uint8 ``(H, W, 3)``."""
+def _destination(out: np.ndarray | None, shape: tuple[int, ...], dtype, what: str) -> np.ndarray:
+    """``out`` checked to be a writable ``shape`` array of ``dtype`` (a new array when None)."""
+    if out is None:
+        return np.empty(shape, dtype)
+    if out.shape != shape or out.dtype != dtype or not out.flags.writeable:
+        raise ValueError(f"{what}: out must be a writable {np.dtype(dtype)} array of shape {shape}, "
+                         f"got {out.dtype} {out.shape}")
+    return out
+
+
+def bgra_to_rgb(bgra: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """CARLA BGRA (or BGR) uint8 -> RGB uint8 ``(H, W, 3)``, into ``out`` when given (returned)."""
     a = _check_bgra(bgra, "bgra_to_rgb")
-    return np.ascontiguousarray(a[..., 2::-1])
+    rgb = _destination(out, a.shape[:2] + (3,), np.uint8, "bgra_to_rgb")
+    for c in range(3):  # one strided copy per channel (a reversed-channel view copies byte by byte)
+        rgb[..., c] = a[..., 2 - c]
+    return rgb
 
 
 def rgb_to_bgra(rgb: np.ndarray) -> np.ndarray:
@@ -44,13 +57,37 @@ def rgb_to_bgra(rgb: np.ndarray) -> np.ndarray:
     return np.concatenate([a[..., ::-1], alpha], axis=-1)
 
 
-def decode_depth(bgra: np.ndarray) -> np.ndarray:
-    """CARLA 24-bit encoded depth (BGRA uint8) -> planar z-depth in metres, float32."""
+def decode_depth(bgra: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """CARLA 24-bit encoded depth (BGRA uint8) -> planar z-depth in metres, float32, into ``out``
+    when given (returned)."""
     a = _check_bgra(bgra, "decode_depth")
+    depth = _destination(out, a.shape[:2], np.float32, "decode_depth")
     # The 24-bit code in integers (exact), then one float64 scaling: the same values as scaling
-    # every channel in float64, without converting the whole BGRA array to float64.
-    code = a[..., 2].astype(np.int32) + (a[..., 1].astype(np.int32) << 8) + (a[..., 0].astype(np.int32) << 16)
-    return (CARLA_MAX_DEPTH_M * code.astype(np.float64) / _DEPTH_SCALE).astype(np.float32)
+    # every channel in float64, without converting the whole BGRA array to float64. Read as a
+    # big-endian 32-bit word, BGRA bytes are B << 24 | G << 16 | R << 8 | A: shifted right by 8,
+    # the code R + 256 G + 256² B.
+    if a.shape[-1] == 4:
+        code = np.ascontiguousarray(a).view(">u4").reshape(-1)
+    else:
+        code = a[..., 2].astype(np.uint32) + (a[..., 1].astype(np.uint32) << 8) + (a[..., 0].astype(np.uint32) << 16)
+        code = code.reshape(-1) << 8  # as the words
+    contiguous = depth.flags.c_contiguous
+    flat = depth.reshape(-1) if contiguous else np.empty(depth.size, np.float32)
+    block = max(1, min(code.size, _DEPTH_BLOCK))
+    shifted, scaled = np.empty(block, np.uint32), np.empty(block, np.float64)
+    for start in range(0, code.size, block):  # blocks that stay in the cache
+        n = min(block, code.size - start)
+        np.right_shift(code[start:start + n], 8, out=shifted[:n], dtype=np.uint32)
+        np.multiply(shifted[:n], CARLA_MAX_DEPTH_M, out=scaled[:n])
+        np.divide(scaled[:n], _DEPTH_SCALE, out=scaled[:n])
+        np.copyto(flat[start:start + n], scaled[:n], casting="same_kind")
+    if not contiguous:
+        depth[...] = flat.reshape(depth.shape)
+    return depth
+
+
+_DEPTH_BLOCK = 1 << 18
+"""Pixels `decode_depth` converts at a time (its float64 block stays in the cache)."""
 
 
 def encode_depth(depth_m: np.ndarray) -> np.ndarray:
@@ -63,9 +100,13 @@ def encode_depth(depth_m: np.ndarray) -> np.ndarray:
     return np.stack([b, g, r, alpha], axis=-1).astype(np.uint8)
 
 
-def decode_semantic(bgra: np.ndarray) -> np.ndarray:
-    """CARLA semantic segmentation image -> tag map uint8 ``(H, W)`` (the red channel)."""
-    return np.ascontiguousarray(_check_bgra(bgra, "decode_semantic")[..., 2])
+def decode_semantic(bgra: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """CARLA semantic segmentation image -> tag map uint8 ``(H, W)`` (the red channel), into
+    ``out`` when given (returned)."""
+    a = _check_bgra(bgra, "decode_semantic")
+    tags = _destination(out, a.shape[:2], np.uint8, "decode_semantic")
+    tags[...] = a[..., 2]
+    return tags
 
 
 def encode_semantic(tags: np.ndarray) -> np.ndarray:

@@ -73,18 +73,25 @@ def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None 
             head = fh.read(len(PNG_SIGNATURE))
     except OSError as e:
         raise ImageError(f"{path}: cannot read image file ({e.strerror or e})") from None
-    if lossless and head != PNG_SIGNATURE:
-        found = _sniff(head)
-        raise ImageError(f"{path}: expected a lossless PNG file, found {found} (the PNG signature is missing)")
-    if head == PNG_SIGNATURE:
-        pixels = decode_png(read_png_bytes(path), str(path), fallback=lambda: _read_oiio(path))
-    else:
-        pixels = _read_oiio(path)
+    pixels = decode_image_bytes(path, read_png_bytes(path) if head == PNG_SIGNATURE else head, lossless=lossless)
     if expect_shape is not None:
         got = pixels.shape[: len(expect_shape)]
         if tuple(got) != tuple(expect_shape):
             raise ImageError(f"{path}: expected an image of shape {tuple(expect_shape)}, got {pixels.shape}")
     return pixels
+
+
+def decode_image_bytes(path: Path, data: bytes, *, lossless: bool = False) -> np.ndarray:
+    """The pixels of the image file ``path`` whose bytes (or at least its first eight) are ``data``:
+    PNG bytes are decoded from ``data``, any other format is read from ``path`` by OpenImageIO
+    (`read_image`'s rules; ``lossless=True`` refuses anything but a PNG)."""
+    head = bytes(data[:len(PNG_SIGNATURE)])
+    if lossless and head != PNG_SIGNATURE:
+        found = _sniff(head)
+        raise ImageError(f"{path}: expected a lossless PNG file, found {found} (the PNG signature is missing)")
+    if head == PNG_SIGNATURE:
+        return decode_png(data, str(path), fallback=lambda: _read_oiio(path))
+    return _read_oiio(path)
 
 
 def _read_oiio(path: Path) -> np.ndarray:

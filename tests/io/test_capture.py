@@ -11,6 +11,7 @@ import pytest
 import jaxfish as jf
 from jaxfish.dataset import synthesize_capture
 from jaxfish.io import DVS_EVENT_DTYPE, CaptureError, CaptureReader
+from jaxfish.io._capture import face_stacks
 from jaxfish.scene import (
     RADAR_DTYPE,
     SEMANTIC_LIDAR_DTYPE,
@@ -62,7 +63,11 @@ def test_read_back_matches_the_scene(capture):
         assert np.max(np.abs(img.depth_m - np.asarray(b.depth_m))) <= CARLA_DEPTH_QUANTUM_M + 1e-6 * 1000
         assert img.rgb.dtype == np.uint8 and img.rgb.shape == (FACE, FACE, 3)
     stack = reader.faces_stack(1, "FV")
-    assert stack.depth_m.shape == (len(config.faces), FACE, FACE)
+    assert stack.depth_m.shape == (len(config.faces), FACE, FACE) and stack.rgb.flags.writeable
+    for i, face in enumerate(config.faces):  # decoded into the stacks: the faces as read one by one
+        img = reader.face(1, "FV", face, "curr")
+        for k in ("rgb", "depth_m", "semantic", "actor_id"):
+            np.testing.assert_array_equal(getattr(stack, k)[i], getattr(img, k))
     actors = reader.actors(1)
     assert [a["id"] for a in actors] == [a.id for a in frame.actors]
     np.testing.assert_allclose(actors[3]["transform"]["location"], frame.actors[3].location)
@@ -151,6 +156,20 @@ def test_reuse_decoded_prev_images_that_copy_the_previous_curr(tmp_path, capture
     np.testing.assert_array_equal(left1.depth_m, plain.face(1, "FV", "left", "prev").depth_m)
     forget_decoded_images()
     assert reader.face(1, "FV", "front", "prev", actor_ids=False).rgb is not curr0.rgb
+    # Decoded into given arrays: the arrays returned are views of them, a kept curr image is copied
+    # into the arrays a later prev is decoded into, and the caller's arrays stay writable.
+    forget_decoded_images()
+    out0 = face_stacks(1, FACE)
+    curr0 = reader.face(0, "FV", "front", "curr", actor_ids=False, out=tuple(a[0] for a in out0))
+    out1 = face_stacks(1, FACE)
+    prev1 = reader.face(1, "FV", "front", "prev", actor_ids=False, out=tuple(a[0] for a in out1))
+    expected = plain.face(1, "FV", "front", "prev")
+    for k, a0, a1 in zip(("rgb", "depth_m", "semantic"), out0, out1, strict=True):
+        np.testing.assert_array_equal(a1[0], getattr(expected, k))
+        np.testing.assert_array_equal(getattr(prev1, k), getattr(expected, k))
+        assert np.shares_memory(getattr(curr0, k), a0) and np.shares_memory(getattr(prev1, k), a1)
+        assert a0.flags.writeable
+    forget_decoded_images()
 
 
 def _jpeg_over(path):

@@ -43,6 +43,39 @@ def test_depth_matches_the_documented_formula():
     assert decode_depth(white)[0, 0] == CARLA_MAX_DEPTH_M  # far / sky saturates at exactly 1000 m
 
 
+def test_depth_is_float64_scaling_of_the_code_rounded_once_to_float32():
+    """Bit-exact: the code in integers, one float64 product and quotient, one rounding to float32,
+    for BGRA and BGR pixels, images larger than one conversion block, and strided inputs."""
+    for shape in [(3, 4, 4), (2, 3, 3), (700, 600, 4)]:
+        bgra = RNG.integers(0, 256, shape, dtype=np.uint8)
+        code = bgra[..., 2].astype(np.int64) + (bgra[..., 1].astype(np.int64) << 8) + (bgra[..., 0].astype(np.int64) << 16)
+        expected = (CARLA_MAX_DEPTH_M * code.astype(np.float64) / (256**3 - 1)).astype(np.float32)
+        np.testing.assert_array_equal(decode_depth(bgra), expected)
+        np.testing.assert_array_equal(decode_depth(bgra[::2, ::-1]), expected[::2, ::-1])
+    assert decode_depth(np.zeros((0, 5, 4), np.uint8)).shape == (0, 5)
+
+
+@pytest.mark.parametrize("decode, shape, dtype", [(bgra_to_rgb, (5, 6, 3), np.uint8), (decode_depth, (5, 6), np.float32),
+                                                  (decode_semantic, (5, 6), np.uint8)])
+def test_decoders_write_into_a_given_array(decode, shape, dtype):
+    bgra = RNG.integers(0, 256, (5, 6, 4), dtype=np.uint8)
+    expected = decode(bgra)
+    stack = np.zeros((3,) + shape, dtype)
+    assert decode(bgra, stack[1]) is not None
+    np.testing.assert_array_equal(stack[1], expected)
+    assert not stack[0].any() and not stack[2].any()  # nothing written beside the destination
+    strided = np.zeros(shape[::-1], dtype).T if len(shape) == 2 else np.zeros((6, 5, 3), dtype).transpose(1, 0, 2)
+    decode(bgra, strided)
+    np.testing.assert_array_equal(strided, expected)
+    for bad in (np.zeros((4, 6) + shape[2:], dtype), np.zeros(shape, np.float64), np.zeros(shape, dtype)[None]):
+        with pytest.raises(ValueError, match="out must be a writable"):
+            decode(bgra, bad)
+    frozen = np.zeros(shape, dtype)
+    frozen.setflags(write=False)
+    with pytest.raises(ValueError, match="out must be a writable"):
+        decode(bgra, frozen)
+
+
 def test_depth_round_trip_within_one_level():
     d = np.concatenate([RNG.uniform(0, 1000, 500), [0.0, 1000.0, 1e6, -3.0]]).astype(np.float64)
     back = decode_depth(encode_depth(d[None]))[0]
