@@ -257,7 +257,7 @@ def _unfilter_up(filtered: np.ndarray) -> np.ndarray:
     out[0] = d[0]  # Up on the first row adds a zero row
     add, prev = np.add, out[0]
     # Iterating yields the row views with less overhead per row than indexing.
-    for mode, row, unfiltered in zip(filtered[1:, 0].tolist(), d[1:], out[1:]):
+    for mode, row, unfiltered in zip(filtered[1:, 0].tolist(), d[1:], out[1:], strict=True):
         if mode:
             add(prev, row, out=unfiltered)
         else:
