@@ -177,8 +177,10 @@ def _running():
 
 # ------------------------------------------------------------------------------------- one sample
 def sha256_file(path: Path) -> str:
-    """SHA-256 (hex) of a file's bytes."""
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    """SHA-256 (hex) of a file's bytes (read through one small reused buffer, not into one large
+    new object)."""
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 class _Extras(NamedTuple):

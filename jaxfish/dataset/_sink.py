@@ -21,7 +21,6 @@ from ..groundtruth import SYNWOODSCAPE_CLASSES, SYNWOODSCAPE_PALETTE
 from ..io import (
     atomic_write_bytes,
     atomic_write_text,
-    carla_to_tonic,
     write_boxes_2d_csv,
     write_boxes_3d_ext_json,
     write_boxes_3d_pickle,
@@ -30,11 +29,11 @@ from ..io import (
     write_depth_npy,
     write_displacements,
     write_events_npy,
+    write_events_tonic,
     write_flo,
     write_image,
     write_kitti_flow,
     write_label_png,
-    write_npz,
     write_png_with_metadata,
 )
 from ..pipeline import (
@@ -108,8 +107,7 @@ def write_camera_files(root: Path, sample: str, cam: CameraTruth, *, motion_thre
     if cam.events is not None:
         ev = cam.events
         add(write_events_npy(root / "dvs_signals" / "raw_data" / f"{stem}.npy", ev))
-        add(write_npz(root / "dvs_signals" / "tonic" / f"{stem}.npz", events=carla_to_tonic(ev),
-                      time_unit=np.asarray("us"), sensor_size=np.asarray([w, h, 2], np.int64)))
+        add(write_events_tonic(root / "dvs_signals" / "tonic" / f"{stem}.npz", ev, width=w, height=h))
         add(write_image(root / "dvs_signals" / "color_coded" / f"{stem}.png", cam.events_rgb, png_level=png_level))
     return out
 

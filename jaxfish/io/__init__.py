@@ -86,12 +86,12 @@ from ._labels import write_depth_exr as write_depth_exr
 from ._labels import write_depth_npy as write_depth_npy
 from ._labels import write_displacements as write_displacements
 from ._labels import write_label_png as write_label_png
-from ._labels import write_npz as write_npz
 from ._lut_cache import LUT_FORMAT_VERSION as LUT_FORMAT_VERSION
 from ._lut_cache import cached_lut as cached_lut
 from ._lut_cache import load_lut as load_lut
 from ._lut_cache import lut_cache_key as lut_cache_key
 from ._lut_cache import save_lut as save_lut
+from ._npz import write_npz as write_npz
 from ._ocamcalib import load_ocamcalib as load_ocamcalib
 from ._ocamcalib import ocamcalib_from_text as ocamcalib_from_text
 from ._ocamcalib import ocamcalib_to_text as ocamcalib_to_text

@@ -11,6 +11,7 @@ import numpy as np
 from .._errors import ImageError
 from ._atomic import atomic_path
 from ._carla import DVS_EVENT_DTYPE
+from ._npz import NpzMember, write_npz
 
 TONIC_EVENT_DTYPE = np.dtype([("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
 """tonic's event dtype (``tonic.io.make_structured_array``): int64 ``x, y, t, p``; t in µs."""
@@ -40,11 +41,19 @@ def _structured_events(events: np.ndarray, where: object) -> np.ndarray:
 def carla_to_tonic(events: np.ndarray) -> np.ndarray:
     """CARLA events (t in ns) -> tonic's ``x, y, t, p`` (t in **µs**, floor division; p 1 / 0)."""
     ev = _structured_events(events, "carla_to_tonic")
-    out = np.empty(ev.shape[0], TONIC_EVENT_DTYPE)
+    return _tonic_into(ev, np.empty(ev.shape[0], TONIC_EVENT_DTYPE))
+
+
+def _tonic_into(ev: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """`carla_to_tonic` of CARLA-field events ``ev`` into the `TONIC_EVENT_DTYPE` array ``out``."""
     out["x"], out["y"] = ev["x"], ev["y"]
-    out["t"] = np.floor_divide(ev["t"].astype(np.int64), 1000)
-    out["p"] = ev["pol"].astype(np.int64)
+    np.floor_divide(ev["t"], 1000, out=out["t"], casting="same_kind")
+    out["p"] = ev["pol"]
     return out
+
+
+TONIC_CHUNK_EVENTS = 1 << 16
+"""Events `write_events_tonic` converts at a time (a 2 MiB buffer, reused)."""
 
 
 def write_events_npy(path: str | os.PathLike, events: np.ndarray) -> Path:
@@ -73,13 +82,21 @@ def read_events_npy(path: str | os.PathLike) -> np.ndarray:
 
 
 def write_events_tonic(path: str | os.PathLike, events: np.ndarray, *, width: int, height: int) -> Path:
-    """Write CARLA events as a tonic-compatible ``.npz``: ``events`` (`TONIC_EVENT_DTYPE`, t in
-    µs), ``time_unit = "us"`` and ``sensor_size = (width, height, 2)``."""
+    """Write CARLA events as a tonic-compatible ``.npz`` (`write_npz`: the same events always give
+    the same bytes): ``events`` (`TONIC_EVENT_DTYPE`, t in µs, `carla_to_tonic`),
+    ``time_unit = "us"`` and ``sensor_size = (width, height, 2)`` (int64). The events are
+    converted and written a chunk at a time."""
     path = Path(path)
-    ton = carla_to_tonic(_structured_events(events, path))
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, events=ton, time_unit=np.asarray("us"), sensor_size=np.asarray([width, height, 2], np.int64))
-    return path
+    ev = _structured_events(events, path)
+
+    def chunks():
+        buf = np.empty(min(ev.shape[0], TONIC_CHUNK_EVENTS), TONIC_EVENT_DTYPE)
+        for start in range(0, ev.shape[0], TONIC_CHUNK_EVENTS):
+            part = ev[start:start + TONIC_CHUNK_EVENTS]
+            yield memoryview(_tonic_into(part, buf[:part.shape[0]]).view(np.uint8))
+
+    return write_npz(path, events=NpzMember(TONIC_EVENT_DTYPE, ev.shape, chunks), time_unit=np.asarray("us"),
+                     sensor_size=np.asarray([width, height, 2], np.int64))
 
 
 def read_events_tonic(path: str | os.PathLike) -> tuple[np.ndarray, str, tuple[int, int, int]]:

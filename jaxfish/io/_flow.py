@@ -61,16 +61,41 @@ def write_kitti_flow(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarra
     f = np.asarray(flow)
     if f.ndim != 3 or f.shape[-1] != 2:
         raise ImageError(f"{path}: flow must have shape (H, W, 2), got {f.shape}")
+    return write_image(path, kitti_flow_pixels(f, valid), png_level=png_level)
+
+
+def kitti_flow_pixels(flow: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """The ``(H, W, 3)`` uint16 pixels `write_kitti_flow` stores for ``(H, W, 2)`` flow: ``(u, v)``
+    as ``round(64 value + 2**15)`` clipped to 0..65535 (0 where not ``valid``), then ``valid``."""
+    f = np.asarray(flow)
     ok = np.ones(f.shape[:2], bool) if valid is None else np.asarray(valid, bool)
     # Scaling by 64 is exact in the flow's own float type, so rounding there and adding the offset
     # in integers gives float64's result (a float32 sum would round the fraction first).
     f = f if f.dtype in (np.float32, np.float64) else f.astype(np.float64)
-    scaled = np.rint(np.clip(f * KITTI_FLOW_SCALE, -KITTI_FLOW_OFFSET - 1, KITTI_FLOW_OFFSET))
-    q = np.clip(scaled.astype(np.int32) + KITTI_FLOW_OFFSET, 0, 65535)
     out = np.empty(f.shape[:2] + (3,), np.uint16)
-    out[..., :2] = np.where(ok[..., None], q, 0)
     out[..., 2] = ok
-    return write_image(path, out, png_level=png_level)
+    keep = ok.astype(np.int32)
+    rows = max(1, _KITTI_BLOCK // max(1, f.shape[1]))
+    scaled = np.empty((rows, f.shape[1]), f.dtype)
+    q = np.empty((rows, f.shape[1]), np.int32)
+    for r in range(0, f.shape[0], rows):  # row blocks that stay in the cache, one channel at a time
+        n = min(rows, f.shape[0] - r)
+        s, qn = scaled[:n], q[:n]
+        for c in range(2):
+            np.multiply(f[r:r + n, :, c], KITTI_FLOW_SCALE, out=s)
+            np.clip(s, -KITTI_FLOW_OFFSET - 1, KITTI_FLOW_OFFSET, out=s)
+            np.rint(s, out=s)
+            with np.errstate(invalid="ignore"):  # NaN: any integer, clipped, and stored only where valid
+                np.copyto(qn, s, casting="unsafe")
+            qn += KITTI_FLOW_OFFSET
+            np.clip(qn, 0, 65535, out=qn)
+            qn *= keep[r:r + n]  # 0 where not valid
+            out[r:r + n, :, c] = qn
+    return out
+
+
+_KITTI_BLOCK = 1 << 15
+"""Pixels per block of `kitti_flow_pixels`."""
 
 
 def read_kitti_flow(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:

@@ -187,18 +187,3 @@ def read_depth_exr(path: str | os.PathLike) -> np.ndarray:
     if a.shape[-1] != 1 or a.dtype != np.float32:
         raise ImageError(f"{path}: expected a one-channel float32 depth EXR, got {a.dtype} {a.shape}")
     return a[..., 0]
-
-
-def write_npz(path: str | os.PathLike, **arrays: np.ndarray) -> Path:
-    """``np.savez``-compatible ``.npz`` with fixed zip timestamps (1980-01-01), so the same arrays
-    always give the same bytes (``np.savez`` stamps the current time); atomic, no pickle."""
-    import zipfile
-
-    path = Path(path)
-    with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
-        for name, arr in arrays.items():
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_STORED
-            with zf.open(info, "w", force_zip64=True) as fh:
-                np.lib.format.write_array(fh, np.asanyarray(arr), allow_pickle=False)
-    return path

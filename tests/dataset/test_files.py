@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 
 from jaxfish._constants import DVS_EVENT_DTYPE
 from jaxfish.groundtruth import EventMap
@@ -89,6 +90,46 @@ def test_npz_is_deterministic_and_numpy_readable(tmp_path, monkeypatch):
     assert a == b
     with np.load(tmp_path / "a.npz", allow_pickle=False) as z:
         np.testing.assert_array_equal(z["events"], arrays["events"]) and str(z["time_unit"]) == "us"
+
+
+def _npz_by_numpy_writer(path, **arrays):
+    """The reference layout: each array through ``np.lib.format.write_array`` into a stored zip64
+    member stamped 1980-01-01, as ``np.savez`` lays them out."""
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            with zf.open(info, "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, np.asanyarray(arr), allow_pickle=False)
+    return path.read_bytes()
+
+
+def test_npz_bytes_are_numpys_for_every_array_layout(tmp_path):
+    from jaxfish.io._npz import NpzMember
+
+    rng = np.random.default_rng(3)
+    events = np.zeros(1000, [("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
+    events["t"] = rng.integers(0, 10**9, 1000)
+    arrays = {"events": events, "time_unit": np.asarray("us"), "empty": np.zeros((0, 3), np.float32),
+              "fortran": np.asfortranarray(rng.random((4, 5))), "strided": rng.random((6, 8))[::2, ::3],
+              "bool": rng.random((3, 3)) < 0.5, "long_header": np.zeros(2, [(f"f{i}", "<u2") for i in range(4000)])}
+    with pytest.warns(UserWarning, match="format 2.0"):  # the long header needs .npy version 2, as in NumPy
+        ours = write_npz(tmp_path / "a.npz", **arrays).read_bytes()
+    with pytest.warns(UserWarning, match="format 2.0"):
+        assert ours == _npz_by_numpy_writer(tmp_path / "ref.npz", **arrays)
+
+    def chunks():  # the same events in uneven chunks
+        raw = events.view(np.uint8)
+        return (raw[i:i + 7000] for i in range(0, raw.size, 7000))
+
+    streamed = write_npz(tmp_path / "s.npz", events=NpzMember(events.dtype, events.shape, chunks), time_unit=np.asarray("us"))
+    assert streamed.read_bytes() == _npz_by_numpy_writer(tmp_path / "ref2.npz", events=events, time_unit=np.asarray("us"))
+    with pytest.raises(ValueError, match="chunks hold 7000 bytes"):
+        write_npz(tmp_path / "short.npz", events=NpzMember(events.dtype, events.shape, lambda: [events.view(np.uint8)[:7000]]))
+    assert not (tmp_path / "short.npz").exists()  # atomic: nothing half-written
+    with pytest.raises(ValueError, match="allow_pickle=False"):
+        write_npz(tmp_path / "obj.npz", a=np.asarray([{}], object))
 
 
 def test_depth_colors_near_bright_far_dark_sky_black():

@@ -47,6 +47,20 @@ def test_tonic_round_trip_states_microseconds(tmp_path):
     np.testing.assert_array_equal(carla_to_tonic(ev), ton)
 
 
+def test_tonic_file_is_the_npz_of_the_converted_events_chunk_by_chunk(tmp_path, monkeypatch):
+    import jaxfish.io._events as events_module
+    from jaxfish.io import write_npz
+
+    ev = _events(1000)
+    monkeypatch.setattr(events_module, "TONIC_CHUNK_EVENTS", 64)  # several chunks, the last one short
+    a = write_events_tonic(tmp_path / "a.npz", ev, width=32, height=24).read_bytes()
+    b = write_npz(tmp_path / "b.npz", events=carla_to_tonic(ev), time_unit=np.asarray("us"),
+                  sensor_size=np.asarray([32, 24, 2], np.int64)).read_bytes()
+    assert a == b
+    empty = write_events_tonic(tmp_path / "e.npz", ev[:0], width=32, height=24)
+    assert read_events_tonic(empty)[0].shape == (0,)
+
+
 def test_wrong_dtype_and_missing_files(tmp_path):
     np.save(tmp_path / "bad.npy", np.zeros(3))
     with pytest.raises(ImageError, match="bad.npy"):

@@ -75,3 +75,24 @@ def test_kitti_quantisation_equals_float64_rounding_at_ties_and_limits(tmp_path)
     np.testing.assert_array_equal(raw[..., :2], want)
     assert np.all(raw[..., 2] == 1)
 
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_kitti_pixels_in_row_blocks_equal_the_whole_array_formula(monkeypatch, dtype):
+    """Block by block (several blocks, the last one short) the pixels are the whole-array formula's,
+    invalid pixels 0 in every channel, NaN and huge values included."""
+    import jaxfish.io._flow as flow_module
+
+    rng = np.random.default_rng(5)
+    f = rng.normal(0.0, 300.0, (37, 11, 2)).astype(dtype)
+    f[3, 4, 0], f[5, 6, 1], f[7, 8] = np.nan, 1e30, -1e30
+    valid = rng.random((37, 11)) < 0.8
+    valid[3, 4] = valid[5, 6] = valid[7, 8] = True
+    monkeypatch.setattr(flow_module, "_KITTI_BLOCK", 50)  # blocks of 4 rows
+    got = flow_module.kitti_flow_pixels(f, valid)
+    with np.errstate(invalid="ignore"):
+        q = np.clip(np.rint(np.clip(f * 64, -2**15 - 1, 2**15)).astype(np.int32) + 2**15, 0, 65535)
+    finite = np.isfinite(f).all(-1) | ~valid  # a NaN's integer is the cast's choice: compare the rest
+    np.testing.assert_array_equal(got[finite][..., :2], np.where(valid[..., None], q, 0)[finite])
+    np.testing.assert_array_equal(got[..., 2], valid)
+    assert got[5, 6, 1] == 65535 and got[7, 8, 0] == got[7, 8, 1] == 0

@@ -1,0 +1,83 @@
+"""Deterministic ``.npz`` files: ``np.savez``'s layout (one stored ``{name}.npy`` per array, zip64
+headers) with fixed zip timestamps, written straight from the arrays' buffers or from chunks."""
+
+from __future__ import annotations
+
+import io
+import os
+import zipfile
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import numpy as np
+
+from ._atomic import atomic_path
+
+ZIP_DATE_TIME = (1980, 1, 1, 0, 0, 0)
+"""The timestamp of every member `write_npz` writes (zip's earliest)."""
+
+
+class NpzMember:
+    """One array of an ``.npz`` given as its ``dtype``, ``shape`` and a function returning its
+    C-order bytes in chunks (bytes-like objects whose sizes add up to the array's), so that a
+    large derived array is written without ever being held whole."""
+
+    def __init__(self, dtype: np.dtype, shape: tuple[int, ...], chunks: Callable[[], Iterable]):
+        self.dtype, self.shape, self.chunks = np.dtype(dtype), tuple(int(n) for n in shape), chunks
+
+
+def _npy_header(dtype: np.dtype, shape: tuple[int, ...]) -> bytes | None:
+    """The ``.npy`` header `np.lib.format.write_array` writes for a C-order array (version 1.0),
+    or None when it needs a later version (a long header, non-Latin-1 field names)."""
+    if dtype.hasobject:
+        raise ValueError("Object arrays cannot be saved when allow_pickle=False")
+    buf = io.BytesIO()
+    header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False, "shape": shape}
+    try:
+        np.lib.format.write_array_header_1_0(buf, header)
+    except (ValueError, UnicodeEncodeError):
+        return None
+    return buf.getvalue()
+
+
+def _bytes_of(arr: np.ndarray):
+    """A C-contiguous array's buffer as bytes, without a copy."""
+    return memoryview(arr.reshape(-1).view(np.uint8)) if arr.size else b""
+
+
+def write_npz(path: str | os.PathLike, **arrays: np.ndarray | NpzMember) -> Path:
+    """``np.savez``-compatible ``.npz`` with fixed zip timestamps (1980-01-01), so the same arrays
+    always give the same bytes (``np.savez`` stamps the current time); atomic, no pickle. A member
+    may be an `NpzMember` (its bytes produced chunk by chunk); an array's bytes are written from
+    its buffer (the bytes ``np.savez`` writes)."""
+    path = Path(path)
+    with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, member in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=ZIP_DATE_TIME)
+            info.compress_type = zipfile.ZIP_STORED
+            with zf.open(info, "w", force_zip64=True) as fh:
+                _write_member(fh, member)
+    return path
+
+
+def _write_member(fh, member: np.ndarray | NpzMember) -> None:
+    if isinstance(member, NpzMember):
+        header = _npy_header(member.dtype, member.shape)
+        if header is None:
+            raise ValueError(f"write_npz: the .npy header of a {member.dtype} {member.shape} member needs version 2 or 3")
+        fh.write(header)
+        size = 0
+        for chunk in member.chunks():
+            fh.write(chunk)
+            size += memoryview(chunk).nbytes
+        if size != member.dtype.itemsize * int(np.prod(member.shape)):
+            raise ValueError(f"write_npz: a {member.dtype} {member.shape} member's chunks hold {size} bytes")
+        return
+    arr = np.asanyarray(member)
+    header = _npy_header(arr.dtype, arr.shape) if arr.flags.c_contiguous and type(arr) is np.ndarray else None
+    if header is None:  # Fortran order, a later header version, a subclass: NumPy's own writer
+        np.lib.format.write_array(fh, arr, allow_pickle=False)
+        return
+    fh.write(header)
+    fh.write(_bytes_of(arr))
+
