@@ -33,9 +33,21 @@ def _feeding(fan: np.ndarray, src: np.ndarray, inb: np.ndarray | None) -> tuple[
 def _copies(targets: np.ndarray, src: np.ndarray, keep: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each kept event once per fisheye pixel it feeds (slot order): ``(event index, fisheye flat index)``."""
     rows = targets[src[keep]]  # (K, M): a pixel's targets first, -1 after
-    if rows.shape[1] == 1 or (counts.size and int(counts.max()) == 1):
+    if rows.shape[1] == 1 or not counts.size or int(counts.max()) == 1:
         return keep, rows[:, 0]
-    return np.repeat(keep, counts), rows[np.arange(rows.shape[1]) < counts[:, None]]
+    # Event k's copies fill slots starts[k] .. starts[k] + counts[k] - 1: every event's first
+    # target, then the second targets of the (few) events that have one, and so on.
+    ends = np.cumsum(counts, dtype=np.int64)
+    starts = ends - counts
+    flat, index = np.empty(int(ends[-1]), rows.dtype), np.empty(int(ends[-1]), keep.dtype)
+    flat[starts], index[starts] = rows[:, 0], keep
+    more = np.flatnonzero(counts > 1)
+    for j in range(1, rows.shape[1]):
+        more = more[counts[more] > j]
+        if not more.size:
+            break
+        flat[starts[more] + j], index[starts[more] + j] = rows[more, j], keep[more]
+    return index, flat
 
 
 def _by_time(flat: np.ndarray, t: np.ndarray, pol: np.ndarray, width: int) -> np.ndarray:
@@ -88,7 +100,8 @@ def camera_events(events: Sequence[np.ndarray], event_map: EventMap) -> np.ndarr
         src *= s
         src += x
         inb = None
-        if int(x.max()) >= s or int(y.max()) >= s or int(x.min()) < 0 or int(y.min()) < 0:
+        signed = x.dtype.kind == "i" or y.dtype.kind == "i"  # CARLA's are unsigned: no minimum to check
+        if int(x.max()) >= s or int(y.max()) >= s or (signed and (int(x.min()) < 0 or int(y.min()) < 0)):
             inb = (x >= 0) & (x < s) & (y >= 0) & (y < s)
         src += i * s * s
         if (i + 1) * s * s > tg.shape[0]:  # a face beyond the map's (in-face pixels stay below this bound)
