@@ -27,11 +27,16 @@ def write_label_png(path: str | os.PathLike, labels: np.ndarray, *, png_level: i
     a = np.asarray(labels)
     if a.ndim != 2:
         raise ImageError(f"{path}: labels must be (H, W), got {a.shape}")
-    a = np.clip(a.astype(np.int64), 0, None)
-    dtype = np.uint8 if a.max(initial=0) < 256 else np.uint16
-    if a.max(initial=0) > 65535:
+    if a.dtype == np.uint8:  # as written
+        return write_image(path, a, png_level=png_level)
+    if a.dtype.kind not in "iub":
+        a = a.astype(np.int64)  # truncated towards zero
+    low, high = int(a.min(initial=0)), int(a.max(initial=0))
+    if high > 65535:
         raise ImageError(f"{path}: labels above 65535 do not fit a PNG")
-    return write_image(path, a.astype(dtype), png_level=png_level)
+    if low < 0:
+        a = np.maximum(a, 0)
+    return write_image(path, a.astype(np.uint8 if high < 256 else np.uint16), png_level=png_level)
 
 
 def read_label_png(path: str | os.PathLike) -> np.ndarray:

@@ -36,6 +36,26 @@ def test_label_png_round_trip(tmp_path):
     np.testing.assert_array_equal(read_label_png(tmp_path / "i.png"), big)
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.int8, np.int32, np.uint16, np.int64, np.float32, np.float64, bool])
+def test_label_png_pixels_are_the_clipped_integer_labels_in_the_narrowest_type(tmp_path, dtype):
+    """Negative labels store 0, floats are truncated towards zero, uint8 below 256 else uint16."""
+    rng = np.random.default_rng(2)
+    lab = rng.integers(-5, 120, (5, 7)).astype(dtype) if dtype is not bool else rng.random((5, 7)) < 0.5
+    if np.dtype(dtype).kind == "f":
+        lab = lab + np.asarray(0.75, dtype)
+    want = np.clip(np.asarray(lab).astype(np.int64), 0, None)
+    stored = read_image(write_label_png(tmp_path / "l.png", lab))[..., 0]
+    assert stored.dtype == np.uint8
+    np.testing.assert_array_equal(stored, want)
+    if np.dtype(dtype).itemsize > 1 and dtype is not bool:
+        wide = np.asarray(want * 500, dtype)
+        stored = read_image(write_label_png(tmp_path / "w.png", wide))[..., 0]
+        assert stored.dtype == np.uint16
+        np.testing.assert_array_equal(stored, np.asarray(wide).astype(np.int64))
+        with pytest.raises(ImageError, match="labels above 65535"):
+            write_label_png(tmp_path / "x.png", np.full((2, 2), 70000, np.int64))
+
+
 def test_colour_png_carries_its_palette(tmp_path):
     rgb = np.random.default_rng(1).integers(0, 256, (4, 5, 3)).astype(np.uint8)
     pal = synwoodscape_palette_dict()
