@@ -8,6 +8,7 @@ camera model's frame (OpenCV) to world coordinates (it has determinant -1: it ch
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -476,9 +477,9 @@ def render_pixels(
     uv = jnp.asarray(uv, _F32)
     o, d, valid, pose = _camera_rays(camera, camera_to_world, uv)
     if uv.ndim == 3:  # an image: cast square tiles together (coherent chunks cull well)
-        order = _tile_order(uv.shape[0], uv.shape[1], chunk_size)
+        order, inverse = _tile_order(uv.shape[0], uv.shape[1], chunk_size)
         out = _cast_flat(scene, _take(o, order), _take(d, order), time, chunk_size)
-        out = jax.tree_util.tree_map(lambda x: _take(x, np.argsort(order)), out)
+        out = jax.tree_util.tree_map(lambda x: _take(x, inverse), out)
     else:
         out = _cast_flat(scene, o, d, time, chunk_size)
     return _finish(out, valid, pose)
@@ -489,12 +490,19 @@ def _take(x, index):
     return x[index]
 
 
-def _tile_order(height: int, width: int, chunk_size: int) -> np.ndarray:
-    """Flat pixel indices ordered tile by tile (square tiles of about ``chunk_size`` pixels)."""
+@functools.lru_cache(maxsize=8)
+def _tile_order(height: int, width: int, chunk_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat pixel indices ordered tile by tile (square tiles of about ``chunk_size`` pixels), and
+    the inverse permutation (int32, read-only; one pair per image size, kept)."""
     side = 1 << max(0, int(math.floor(math.log2(max(chunk_size, 1)) / 2)))
     r, c = np.divmod(np.arange(height * width), width)
     key = ((r // side) * ((width + side - 1) // side) + c // side) * side * side + (r % side) * side + (c % side)
-    return np.argsort(key, kind="stable").astype(np.int32)
+    order = np.argsort(key, kind="stable").astype(np.int32)
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(order.size, dtype=np.int32)
+    for a in (order, inverse):
+        a.setflags(write=False)
+    return order, inverse
 
 
 def render(

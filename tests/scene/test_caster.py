@@ -135,3 +135,18 @@ def test_any_camera_model_hit_points_project_back_to_their_pixels(street, small_
         np.testing.assert_allclose(np.asarray(uv)[far], grid[far], atol=2e-3)
     b = render(street.scene, pano, street.scene.camera_to_world(mounts.front_camera_to_vehicle, 1.0))
     assert np.all(np.asarray(b.semantic)[0] == 13)
+
+
+def test_tile_order_is_a_permutation_by_tiles_with_its_inverse_kept():
+    from jaxfish.scene._caster import _tile_order
+
+    h, w, chunk = 13, 22, 16  # 4 x 4 tiles, partial ones at the right and bottom edges
+    order, inverse = _tile_order(h, w, chunk)
+    assert order.dtype == inverse.dtype == np.int32
+    np.testing.assert_array_equal(np.sort(order), np.arange(h * w))
+    np.testing.assert_array_equal(order[inverse], np.arange(h * w))
+    np.testing.assert_array_equal(inverse, np.argsort(order))
+    r, c = np.divmod(order, w)
+    tile = (r // 4) * math.ceil(w / 4) + c // 4
+    assert np.all(np.diff(tile) >= 0)  # tile after tile
+    assert _tile_order(h, w, chunk)[0] is order and not order.flags.writeable  # one pair per size, kept
