@@ -133,10 +133,10 @@ def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = Tru
     must have. ``out``: writable ``(rgb (H, W, 3) uint8, depth (H, W) float32, semantic (H, W)
     uint8)`` arrays (e.g. one face of a camera's stack) the images are decoded into, and returned
     in `CameraImages` (as read-only views with ``reuse``: a kept ``curr`` image is a view of
-    ``out``, which the caller must then leave unchanged). A wrong size or pixel type raises `CaptureError` naming the file; a depth,
-    semantic or instance file that is not a PNG (e.g. a JPEG renamed ``.png``: lossy labels and
-    depth) and any path that is not a regular file (a FIFO, a directory) raise `ImageError` naming
-    it."""
+    ``out``, which the caller must then leave unchanged). A wrong size or pixel type raises
+    `CaptureError` naming the file; a depth, semantic or instance file that is not a PNG (e.g. a
+    JPEG renamed ``.png``: lossy labels and depth) and any path that is not a regular file (a
+    FIFO, a directory) raise `ImageError` naming it."""
     if instant not in INSTANTS:
         raise CaptureError(f"{directory}: instant must be one of {INSTANTS}, got {instant!r}")
 

@@ -47,8 +47,9 @@ def carla_to_tonic(events: np.ndarray) -> np.ndarray:
 def _tonic_into(ev: np.ndarray, out: np.ndarray) -> np.ndarray:
     """`carla_to_tonic` of CARLA-field events ``ev`` into the `TONIC_EVENT_DTYPE` array ``out``."""
     out["x"], out["y"] = ev["x"], ev["y"]
-    np.floor_divide(ev["t"], 1000, out=out["t"], casting="same_kind")
-    out["p"] = ev["pol"]
+    t = ev["t"] if ev.dtype["t"] == np.int64 else ev["t"].astype(np.int64)  # e.g. float times: truncated first
+    np.floor_divide(t, 1000, out=out["t"])
+    out["p"] = ev["pol"] if ev.dtype["pol"] == np.bool_ else ev["pol"].astype(np.int64)
     return out
 
 
