@@ -61,6 +61,14 @@ def test_tonic_file_is_the_npz_of_the_converted_events_chunk_by_chunk(tmp_path, 
     assert read_events_tonic(empty)[0].shape == (0,)
 
 
+def test_tonic_conversion_of_other_field_types():
+    ev = np.zeros(3, [("t", "<f8"), ("x", "<i4"), ("y", "<u2"), ("pol", "<i1")])  # CARLA's fields, other types
+    ev["t"], ev["x"], ev["y"], ev["pol"] = [1999.9, 2000.0, 123456.7], [1, 2, 3], [4, 5, 6], [1, 0, 1]
+    ton = carla_to_tonic(ev)
+    assert ton.dtype == TONIC_EVENT_DTYPE
+    assert ton["t"].tolist() == [1, 2, 123] and ton["p"].tolist() == [1, 0, 1] and ton["x"].tolist() == [1, 2, 3]
+
+
 def test_wrong_dtype_and_missing_files(tmp_path):
     np.save(tmp_path / "bad.npy", np.zeros(3))
     with pytest.raises(ImageError, match="bad.npy"):
