@@ -237,9 +237,10 @@ def measure_stages(capture: str, scratch: str, repeat: int) -> dict:
       (`atomic_write_bytes`: a temporary file, its bytes, chmod, rename; the builder calls no fsync).
 
     First (median of ``repeat`` after a compiling round) the whole `build_sample` (thread pool,
-    SHA-256 of every file and the marker included), from the capture and from the decoded frame
-    handed over in memory, and the process's peak RSS after them (compilation included; not the
-    stage runs', which hold a sample's files in memory). Run it in a fresh process (`in_child`)."""
+    SHA-256 of every file and the marker included) from the capture, and the process's peak RSS
+    after them (compilation included; not the later runs', which hold a decoded frame or a
+    sample's files in memory); then the same builds from the decoded frame handed over in memory.
+    Run it in a fresh process (`in_child`)."""
     import jax
 
     from jaxfish.dataset import BuildOptions, CaptureSource, LayoutSink, build_sample, rig_constants_of
@@ -259,16 +260,18 @@ def measure_stages(capture: str, scratch: str, repeat: int) -> dict:
         runs.setdefault(name, []).append(time.process_time() - c)
         return result
 
-    decoded = source.read(0)
-    for i in range(repeat + 1):  # the whole builds first (their peak memory); the first round compiles
-        for name, src in (("total", source), ("in memory", _Decoded(source, decoded))):
+    def whole_builds(name: str, src) -> None:
+        for i in range(repeat + 1):  # the first round compiles
             c = time.process_time()
             build_sample(src, root / f"build{i}", 0)
             runs.setdefault(name, []).append(time.process_time() - c)
             shutil.rmtree(root / f"build{i}")
+
+    whole_builds("total", source)  # first: the peak memory of builds from the capture, nothing else held
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    whole_builds("in memory", _Decoded(source, source.read(0)))  # the decoded frame held throughout
     builds = {name: runs[name][1:] or runs[name] for name in ("total", "in memory")}  # without the compiling round
     runs.clear()
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     for i in range(repeat + 1):  # the first round compiles the stages' own programs
         if i == 1:
             runs.clear()
@@ -308,7 +311,7 @@ def print_stage_table(content: str, stages: dict, repeat: int) -> None:
           f"{bound(stages['total'])} samples/s (goal <= 2.00 CPU-s)")
     print(f"  {'build_sample from memory (no decode)':46s} {stages['in memory']:6.2f}   2-core bound "
           f"{bound(stages['in memory'])} samples/s (goal <= 1.50 CPU-s)")
-    print(f"  peak memory of the builds (compilation included): {stages['peak_mb']:.0f} MB (goal < 4096)", flush=True)
+    print(f"  peak memory of the builds from the capture (compilation included): {stages['peak_mb']:.0f} MB (goal < 4096)", flush=True)
 
 
 def prepare_captures(args, scratch: Path) -> dict[str, Path]:
