@@ -5,7 +5,6 @@ from either has the same bytes. A source is picklable: dask workers read their o
 
 from __future__ import annotations
 
-import concurrent.futures
 import hashlib
 import json
 import os
@@ -232,7 +231,6 @@ class CaptureSource:
         ``sensors=False`` (then None). A missing or malformed file raises
         `jaxfish.io.CaptureError` naming it."""
         from ..io import CaptureError
-        from ..io._capture import face_stacks
 
         reader = self.reader
         actors = reader.actors(index)  # names the frame when it is missing
@@ -243,32 +241,11 @@ class CaptureSource:
             raise CaptureError(f"{reader.root}: frame {index}: malformed actors.json / ego.json ({e})") from e
         names = self.cameras if cameras else []
         faces = list(reader.faces)
-        size = reader.meta.get("face_size")
-        # Each camera's faces at each instant are decoded straight into one stack per image kind
-        # (without ``face_size``: decoded alone, then stacked).
-        stacks = {(c, inst): None if size is None else face_stacks(len(faces), int(size))
-                  for inst in ("prev", "curr") for c in names}
-        jobs = [(c, inst, i) for inst in ("prev", "curr") for c in names for i in range(len(faces))]
-
-        def decode(job: tuple[str, str, int]):
-            c, inst, i = job
-            out = stacks[(c, inst)]
-            return reader.face(index, c, faces[i], inst, actor_ids=False,
-                               out=None if out is None else (out[0][i], out[1][i], out[2][i]))
-
-        # PNG decoding releases the GIL: every face of every camera in one pool of threads.
-        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, _usable_cores()))) as pool:
-            imgs = dict(zip(jobs, pool.map(decode, jobs), strict=True))
+        decoded = reader.faces_stacks(index, [(c, inst) for inst in ("prev", "curr") for c in names], actor_ids=False)
 
         def cube(c: str, inst: str) -> CubeFaces:
-            out = stacks[(c, inst)]
-            if out is None:
-                out = tuple(np.stack([getattr(imgs[(c, inst, i)], k) for i in range(len(faces))])
-                            for k in ("rgb", "depth_m", "semantic"))
-            elif self.reuse_decoded:
-                for a in out:  # their curr faces are kept for the next frame's prev (`CaptureReader`)
-                    a.setflags(write=False)
-            return CubeFaces(*out)
+            images = decoded[(c, inst)]
+            return CubeFaces(images.rgb, images.depth_m, images.semantic)
 
         camera_frames = tuple(CameraFrame(cube(c, "prev"), cube(c, "curr"), tuple(reader.dvs(index, c, f) for f in faces))
                               for c in names)
@@ -480,10 +457,3 @@ class EmbeddedSource:
     def __repr__(self) -> str:
         return f"EmbeddedSource(seed={self.seed}, frames={len(self.frames)}, face_size={self.face_size})"
 
-
-def _usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity: a pinned dask worker's share), at least 1."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        return os.cpu_count() or 1

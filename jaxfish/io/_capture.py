@@ -149,6 +149,8 @@ def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = Tru
         return _decoded_reusing(path, reuse + (kind,), instant, checked, lossless=lossless, out=dst)
 
     rgb_out, depth_out, sem_out = (None, None, None) if out is None else out
+    if size is None and out is not None:
+        size = depth_out.shape  # the images must fill the arrays they are decoded into
     rgb = load("rgb", bgra_to_rgb, rgb_out)
     depth = load("depth", decode_depth, depth_out)
     sem = load("semantic", decode_semantic, sem_out)
@@ -173,9 +175,6 @@ def _checked(decode, path: Path, size: tuple[int, int] | None, out: np.ndarray |
         if size is not None and tuple(pixels.shape[:2]) != tuple(size):
             raise CaptureError(f"{path}: image is {pixels.shape[1]}x{pixels.shape[0]}, expected {size[1]}x{size[0]} "
                                "(capture.json 'face_size' / sensors.json)")
-        if out is not None and tuple(pixels.shape[:2]) != out.shape[:2]:
-            raise CaptureError(f"{path}: image is {pixels.shape[1]}x{pixels.shape[0]}, expected "
-                               f"{out.shape[1]}x{out.shape[0]} (the size of the capture's other images)")
         try:
             return decode(pixels) if out is None else decode(pixels, out)
         except ImageError as e:
@@ -569,26 +568,41 @@ class CaptureReader:
 
     def faces_stack(self, frame: int, camera: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:
         """All faces of a camera stacked on a leading face axis (the `CubeRig` order of `faces`);
-        ``actor_ids=False`` skips the instance PNGs (`CameraImages.actor_id` None). With
-        ``capture.json``'s ``face_size`` the RGB, depth and semantic images are decoded straight
-        into the stacks (read-only with ``reuse_decoded=True``, as `face`'s arrays)."""
+        ``actor_ids=False`` skips the instance PNGs (`CameraImages.actor_id` None). See
+        `faces_stacks`."""
+        return self.faces_stacks(frame, [(camera, instant)], actor_ids=actor_ids)[(camera, instant)]
+
+    def faces_stacks(self, frame: int, views: Sequence[tuple[str, str]], *,
+                     actor_ids: bool = True) -> dict[tuple[str, str], CameraImages]:
+        """`faces_stack` of every ``(camera, instant)`` in ``views``, all faces decoded in one pool
+        of threads (PNG decoding releases the GIL). With ``capture.json``'s ``face_size`` the RGB,
+        depth and semantic images are decoded straight into the stacks (read-only with
+        ``reuse_decoded=True``, as `face`'s arrays); without it each face is decoded alone, then
+        stacked."""
         size = self.meta.get("face_size")
-        stacks = None if size is None else face_stacks(len(self.faces), int(size))
+        n = len(self.faces)
+        stacks = {v: None if size is None else face_stacks(n, int(size)) for v in views}
+        jobs = [(v, i) for v in views for i in range(n)]
 
-        def read(i: int) -> CameraImages:
+        def read(job: tuple[tuple[str, str], int]) -> CameraImages:
+            (camera, instant), i = job
+            out = stacks[(camera, instant)]
             return self.face(frame, camera, self.faces[i], instant, actor_ids=actor_ids,
-                             out=None if stacks is None else tuple(a[i] for a in stacks))
+                             out=None if out is None else tuple(a[i] for a in out))
 
-        # Decoding PNGs releases the GIL, so the faces are read in a thread pool.
-        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(self.faces), _usable_cores()))) as pool:
-            imgs = list(pool.map(read, range(len(self.faces))))
-        ids = None if imgs[0].actor_id is None else np.stack([i.actor_id for i in imgs])
-        if stacks is None:
-            stacks = tuple(np.stack([getattr(i, k) for i in imgs]) for k in ("rgb", "depth_m", "semantic"))
-        elif self._reuse_key is not None:
-            for a in stacks:  # their curr faces are kept for later readers (`read_images`'s ``reuse``)
-                a.setflags(write=False)
-        return CameraImages(*stacks, ids)
+        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, _usable_cores()))) as pool:
+            imgs = dict(zip(jobs, pool.map(read, jobs), strict=True))
+        result = {}
+        for v in views:
+            faces = [imgs[(v, i)] for i in range(n)]
+            out = stacks[v]
+            if out is None:
+                out = tuple(np.stack([getattr(f, k) for f in faces]) for k in ("rgb", "depth_m", "semantic"))
+            elif self._reuse_key is not None:
+                for a in out:  # their curr faces are kept for later readers (`read_images`'s ``reuse``)
+                    a.setflags(write=False)
+            result[v] = CameraImages(*out, None if faces[0].actor_id is None else np.stack([f.actor_id for f in faces]))
+        return result
 
     def dvs(self, frame: int, camera: str, face: str) -> np.ndarray:
         """DVS events of a face between t-1 and t (`DVS_EVENT_DTYPE`, t in ns); an event outside

@@ -67,17 +67,17 @@ def decode_depth(bgra: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     # big-endian 32-bit word, BGRA bytes are B << 24 | G << 16 | R << 8 | A: shifted right by 8,
     # the code R + 256 G + 256² B.
     if a.shape[-1] == 4:
-        code = np.ascontiguousarray(a).view(">u4").reshape(-1)
+        code, shift = np.ascontiguousarray(a).view(">u4").reshape(-1), 8
     else:
         code = a[..., 2].astype(np.uint32) + (a[..., 1].astype(np.uint32) << 8) + (a[..., 0].astype(np.uint32) << 16)
-        code = code.reshape(-1) << 8  # as the words
+        code, shift = code.reshape(-1), 0
     contiguous = depth.flags.c_contiguous
     flat = depth.reshape(-1) if contiguous else np.empty(depth.size, np.float32)
     block = max(1, min(code.size, _DEPTH_BLOCK))
     shifted, scaled = np.empty(block, np.uint32), np.empty(block, np.float64)
     for start in range(0, code.size, block):  # blocks that stay in the cache
         n = min(block, code.size - start)
-        np.right_shift(code[start:start + n], 8, out=shifted[:n], dtype=np.uint32)
+        np.right_shift(code[start:start + n], shift, out=shifted[:n], dtype=np.uint32)
         np.multiply(shifted[:n], CARLA_MAX_DEPTH_M, out=scaled[:n])
         np.divide(scaled[:n], _DEPTH_SCALE, out=scaled[:n])
         np.copyto(flat[start:start + n], scaled[:n], casting="same_kind")

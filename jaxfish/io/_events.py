@@ -49,7 +49,7 @@ def _tonic_into(ev: np.ndarray, out: np.ndarray) -> np.ndarray:
     out["x"], out["y"] = ev["x"], ev["y"]
     t = ev["t"] if ev.dtype["t"] == np.int64 else ev["t"].astype(np.int64)  # e.g. float times: truncated first
     np.floor_divide(t, 1000, out=out["t"])
-    out["p"] = ev["pol"] if ev.dtype["pol"] == np.bool_ else ev["pol"].astype(np.int64)
+    out["p"] = ev["pol"]  # cast as astype(int64) casts (True -> 1)
     return out
 
 

@@ -80,4 +80,3 @@ def _write_member(fh, member: np.ndarray | NpzMember) -> None:
         return
     fh.write(header)
     fh.write(_bytes_of(arr))
-
