@@ -4,8 +4,9 @@ fast path for the files it writes.
 **Encoder** (`encode_png`). 8- or 16-bit grey (``C = 1``), grey + alpha (2), RGB (3) or RGBA (4),
 never interlaced. Every row carries the "Up" filter (filter byte 2: each byte minus the byte above;
 for 16-bit samples bytewise on the big-endian bytes), and the filtered rows are compressed as ONE
-zlib stream (`deflate_level`: ISA-L through PyPI's ``isal`` where it imports, else Python's
-``zlib``), split into IDAT chunks of at most `IDAT_CHUNK_BYTES`. Chunks: IHDR, one ``tEXt`` per
+zlib stream (`ISAL_LEVELS`: ISA-L through PyPI's ``isal`` where it imports, on states placed by
+`jaxfish.io._deflate` so that the bytes depend on the input only; else Python's ``zlib``), split
+into IDAT chunks of at most `IDAT_CHUNK_BYTES`. Chunks: IHDR, one ``tEXt`` per
 metadata entry (``keyword NUL text``, Latin-1; ``iTXt`` for text outside Latin-1), the IDATs, IEND.
 No time, colour-space or gamma chunk: the same pixels, text and level give the same bytes with the
 same deflate implementation.
@@ -34,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import ImageError
+from . import _deflate
 
 try:  # ISA-L: the same deflate format, several times faster than zlib at its fastest level
     from isal import isal_zlib as _isal_zlib
@@ -65,19 +67,21 @@ _BIT_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: 
 
 
 def deflate_name() -> str:
-    """The deflate implementation `encode_png` uses: ``"isal <version>"`` or ``"zlib <version>"``
-    (the bytes of a PNG depend on it; the pixels never do)."""
+    """The deflate implementation `encode_png` uses: ``"isal <version>"`` (ISA-L on placed states,
+    `jaxfish.io._deflate`), ``"isal <version> unplaced"`` (where states cannot be placed: the bytes
+    may then vary with the calling thread) or ``"zlib <version>"``. The bytes of a PNG depend on it;
+    the pixels never do."""
     if _isal_zlib is not None:
         import isal
 
-        return f"isal {isal.__version__}"
+        return f"isal {isal.__version__}" + ("" if _deflate.DETERMINISTIC else " unplaced")
     return f"zlib {zlib.ZLIB_RUNTIME_VERSION}"
 
 
 def _compress(data, png_level: int) -> bytes:
     if png_level == 0 or _isal_zlib is None:
         return zlib.compress(data, png_level)
-    return _isal_zlib.compress(data, ISAL_LEVELS[png_level])
+    return _deflate.compress(data, ISAL_LEVELS[png_level])
 
 
 def _decompress(data: bytes, size: int) -> bytes:
