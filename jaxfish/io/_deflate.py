@@ -47,8 +47,9 @@ HASH_BITS = 16
 """Low bits of the stray hash that every placed state shares: ISA-L masks it to at most 15 bits
 (levels 2-3), to fewer for inputs under 16 KiB."""
 STRAY_HASH = 0x9E37
-"""The low `HASH_BITS` of the stray hash of every placed state. Odd, so that no mask maps it to 0:
-the hash of four zero bytes, the most common word in filtered image rows."""
+"""The low `HASH_BITS` of the stray hash of every placed state. Odd, so that no mask maps it to 0
+(the hash of four zero bytes, the most common word in filtered image rows); with it the builds
+recorded in ``tests/dataset/manifests`` keep their bytes."""
 
 _ZLIB_FLAG = 3  # IGZIP_ZLIB
 _FULL_FLUSH = 2
