@@ -113,6 +113,13 @@ class _Placed:
         self.address = address
         self.stream = _Stream.from_address(address)
         self.level_buf = np.empty(max(LEVEL_BUF_BYTES.values()), np.uint8)
+        self.out = np.empty(0, np.uint8)  # output space, kept: fresh pages would fault in every call
+
+    def output(self, size: int) -> np.ndarray:
+        """At least ``size`` bytes of output space (the kept buffer, grown when too small)."""
+        if self.out.size < size:
+            self.out = np.empty(size, np.uint8)
+        return self.out
 
 
 class _Library:
@@ -210,7 +217,7 @@ def deflate_with(placed: _Placed, src: np.ndarray, level: int) -> bytes:
     one call on the state ``placed`` (not shared with another thread meanwhile)."""
     n = src.size
     # Room for every block stored (5 bytes a 65,535-byte block), the wrapper and a dynamic header.
-    out = np.empty(n + 5 * (n // 65535 + 1) + 4096, np.uint8)
+    out = placed.output(n + 5 * (n // 65535 + 1) + 4096)
     z = placed.stream
     _LIBRARY.init(placed.address)
     z.level, z.level_buf, z.level_buf_size = level, placed.level_buf.ctypes.data, LEVEL_BUF_BYTES[level]
