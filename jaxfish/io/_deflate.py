@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import os
 import platform
 import sys
 import threading
@@ -182,6 +183,10 @@ def _open() -> _Library | None:
 
 
 _LIBRARY = _open()
+if _LIBRARY is not None and hasattr(os, "register_at_fork"):
+    # A child forked while another thread held the lock would wait for it forever; its states are
+    # its own copies (private mappings), free to reuse.
+    os.register_at_fork(after_in_child=lambda: setattr(_LIBRARY, "lock", threading.Lock()))
 DETERMINISTIC = _LIBRARY is not None
 """Whether `compress` places ISA-L's state itself (the bytes then depend on the input only)."""
 

@@ -4,6 +4,8 @@ states give one byte stream per input whatever the thread."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import zlib
 
@@ -145,3 +147,27 @@ def test_without_placed_states_compress_is_isal_zlib(monkeypatch):
     assert calls == [(data.tobytes(), 2)]
     with pytest.raises(OSError, match="cannot be placed"):
         _deflate.place(0x3C00_0000 << 16)
+
+
+FORK_CHILD = """
+import os, signal
+import numpy as np
+from jaxfish.io import _deflate
+
+data = (np.arange(100_000) // 7).astype(np.uint8)
+expected = _deflate.compress(data, 1)
+with _deflate._LIBRARY.lock:  # as if another thread were taking a state at the fork
+    pid = os.fork()
+    if pid == 0:
+        signal.alarm(30)  # a child waiting on the inherited lock ends instead of hanging
+        os._exit(0 if _deflate.compress(data, 1) == expected else 3)
+_, status = os.waitpid(pid, 0)
+raise SystemExit(os.waitstatus_to_exitcode(status))
+"""
+
+
+@placed_states
+def test_a_child_forked_while_a_thread_holds_the_pool_compresses():
+    # In a fresh interpreter: this one may run JAX, whose threads make forking it unsafe.
+    done = subprocess.run([sys.executable, "-c", FORK_CHILD], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
