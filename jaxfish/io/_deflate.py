@@ -42,8 +42,8 @@ LEVEL_BUF_BYTES = {1: 4096 + 2 * 8192 + 4 * 65536, 2: 4096 + 2 * 32768 + 4 * 655
 """ISA-L's default level buffer of each level (``ISAL_DEF_LVL<n>_DEFAULT``, what ``isal_zlib.compress``
 allocates). Its size sets the deflate block size, so it is part of what fixes the bytes."""
 STATE_BYTES = 1 << 18
-"""Bytes reserved for one ``isal_zstream`` (about 100 KiB in ISA-L 2.3x: the 32 KiB-window history
-buffer and the level-0 hash head dominate)."""
+"""Bytes reserved for one ``isal_zstream`` (about 82 KiB in ISA-L 2.3x: a history buffer of twice
+the 32 KiB window and the level-0 hash heads make most of it)."""
 HASH_BITS = 16
 """Low bits of the stray hash that every placed state shares: ISA-L masks it to at most 15 bits
 (levels 2-3), to fewer for inputs under 16 KiB."""
