@@ -98,7 +98,7 @@ def qualifies(address: int) -> bool:
 
 def candidate_addresses(start: int = _SEARCH_FROM, stray: int = STRAY_HASH) -> Iterator[int]:
     """The 64 KiB-aligned addresses from ``start << 16`` up whose state gives the stray hash
-    ``stray`` in its low `HASH_BITS` (by default those that `qualify <qualifies>`), in order: about
+    ``stray`` in its low `HASH_BITS` (by default those that `qualifies` accepts), in order: about
     one in every 4 GiB of address space (bits 16-47 give 2**32 words)."""
     block = 1 << HASH_BITS
     while start + block <= 1 << 31:  # user space ends below 2**47 on x86-64
