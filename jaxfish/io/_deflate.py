@@ -17,8 +17,8 @@ per input, level and ISA-L version. Every other parameter is
 the whole input in one call.
 
 Where states cannot be placed (not Linux on x86-64, or python-isal's module without exported ISA-L
-symbols) `DETERMINISTIC` is False and `compress` is ``isal_zlib.compress`` itself, as it is when
-other mappings hold every candidate address."""
+symbols) `DETERMINISTIC` is False and `compress` is ``isal_zlib.compress`` itself, as it is once
+`_PLACE_TRIES` candidate addresses in a row could not be mapped."""
 
 from __future__ import annotations
 
@@ -57,6 +57,7 @@ _FULL_FLUSH = 2
 _WINDOW_BITS = 15
 _PROT_RW = 0x1 | 0x2
 _MAP_FLAGS = 0x02 | 0x20 | 0x100000  # MAP_PRIVATE | MAP_ANONYMOUS | MAP_FIXED_NOREPLACE (Linux)
+_PLACE_TRIES = 16  # candidate addresses tried for one new state before the unplaced fallback
 _SEARCH_FROM = 0x3000_0000  # bits 16-47 of the first candidate address: 0x3000_0000_0000, far from the usual mappings
 
 
@@ -151,11 +152,12 @@ class _Library:
         raise OSError(f"cannot place an ISA-L state at {address:#x}")
 
     def _place(self) -> _Placed:
-        for address in self.candidates:
+        for _, address in zip(range(_PLACE_TRIES), self.candidates, strict=False):
             try:
                 return self.place_at(address)
             except OSError:
                 continue
+        self.candidates = iter(())  # where that many fail, mappings are refused: stop trying
         raise OSError("no free address for an ISA-L state among the candidates")
 
     def take(self) -> _Placed | None:
@@ -201,7 +203,7 @@ def compress(data, level: int) -> bytes:
     if _LIBRARY is None or src.size >= 2**32:
         return _isal_zlib.compress(src, level)
     placed = _LIBRARY.take()
-    if placed is None:  # every candidate address taken by other mappings: unplaced, as python-isal
+    if placed is None:  # no state could be placed: unplaced, as python-isal
         return _isal_zlib.compress(src, level)
     try:
         return deflate_with(placed, src, level)

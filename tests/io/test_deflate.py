@@ -171,3 +171,20 @@ def test_a_child_forked_while_a_thread_holds_the_pool_compresses():
     # In a fresh interpreter: this one may run JAX, whose threads make forking it unsafe.
     done = subprocess.run([sys.executable, "-c", FORK_CHILD], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
+
+
+@placed_states
+def test_where_no_state_can_be_placed_compress_falls_back_after_a_few_tries(monkeypatch):
+    library = _deflate._Library()
+    tries = []
+
+    def refuse(address):
+        tries.append(address)
+        raise OSError("refused")
+
+    monkeypatch.setattr(library, "place_at", refuse)
+    monkeypatch.setattr(_deflate, "_LIBRARY", library)
+    data = inputs()[3]
+    assert zlib.decompress(_deflate.compress(data, 1)) == data.tobytes()
+    assert len(tries) == _deflate._PLACE_TRIES
+    assert library.take() is None and len(tries) == _deflate._PLACE_TRIES  # no more tries
