@@ -57,6 +57,7 @@ _FULL_FLUSH = 2
 _WINDOW_BITS = 15
 _PROT_RW = 0x1 | 0x2
 _MAP_FLAGS = 0x02 | 0x20 | 0x100000  # MAP_PRIVATE | MAP_ANONYMOUS | MAP_FIXED_NOREPLACE (Linux)
+_MAX_INPUT = 2**32 - 2**26  # larger inputs (and their output bound) would overflow ISA-L's 32-bit counts: unplaced
 _PLACE_TRIES = 16  # candidate addresses tried for one new state before the unplaced fallback
 _SEARCH_FROM = 0x3000_0000  # bits 16-47 of the first candidate address: 0x3000_0000_0000, far from the usual mappings
 
@@ -200,7 +201,7 @@ def compress(data, level: int) -> bytes:
     if level not in LEVEL_BUF_BYTES:
         raise ValueError(f"ISA-L compresses at levels 1-3, got {level}")
     src = np.ascontiguousarray(data).reshape(-1).view(np.uint8) if isinstance(data, np.ndarray) else np.frombuffer(data, np.uint8)
-    if _LIBRARY is None or src.size >= 2**32:
+    if _LIBRARY is None or src.size > _MAX_INPUT:
         return _isal_zlib.compress(src, level)
     placed = _LIBRARY.take()
     if placed is None:  # no state could be placed: unplaced, as python-isal
@@ -220,7 +221,7 @@ def place(address: int) -> _Placed:
 
 
 def deflate_with(placed: _Placed, src: np.ndarray, level: int) -> bytes:
-    """The zlib stream of the uint8 vector ``src`` (under 4 GiB) at ISA-L ``level``, compressed in
+    """The zlib stream of the uint8 vector ``src`` (at most `_MAX_INPUT` bytes) at ISA-L ``level``, compressed in
     one call on the state ``placed`` (not shared with another thread meanwhile)."""
     n = src.size
     # Room for every block stored (5 bytes a 65,535-byte block), the wrapper and a dynamic header.
