@@ -221,8 +221,9 @@ def place(address: int) -> _Placed:
 
 
 def deflate_with(placed: _Placed, src: np.ndarray, level: int) -> bytes:
-    """The zlib stream of the uint8 vector ``src`` (at most `_MAX_INPUT` bytes) at ISA-L ``level``, compressed in
-    one call on the state ``placed`` (not shared with another thread meanwhile)."""
+    """The zlib stream of the uint8 vector ``src`` (at most `_MAX_INPUT` bytes) at ISA-L
+    ``level``, compressed in one call on the state ``placed`` (not shared with another thread
+    meanwhile)."""
     n = src.size
     # Room for every block stored (5 bytes a 65,535-byte block), the wrapper and a dynamic header.
     out = placed.output(n + 5 * (n // 65535 + 1) + 4096)
