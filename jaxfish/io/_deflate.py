@@ -93,9 +93,14 @@ def stray_hash(words) -> np.ndarray:
     return crc
 
 
+def _low_stray_hash(words) -> np.ndarray:
+    """The low `HASH_BITS` of the stray hash of states whose address bits 16-47 are ``words``."""
+    return stray_hash(words) & np.uint32((1 << HASH_BITS) - 1)
+
+
 def qualifies(address: int) -> bool:
     """Whether a state at ``address`` gives the stray hash `STRAY_HASH` under every mask ISA-L uses."""
-    return int(stray_hash(np.uint32((address >> 16) & 0xFFFFFFFF))) & ((1 << HASH_BITS) - 1) == STRAY_HASH
+    return int(_low_stray_hash(np.uint32((address >> 16) & 0xFFFFFFFF))) == STRAY_HASH
 
 
 def candidate_addresses(start: int = _SEARCH_FROM, stray: int = STRAY_HASH) -> Iterator[int]:
@@ -105,7 +110,7 @@ def candidate_addresses(start: int = _SEARCH_FROM, stray: int = STRAY_HASH) -> I
     block = 1 << HASH_BITS
     while start + block <= 1 << 31:  # user space ends below 2**47 on x86-64
         words = np.arange(start, start + block, dtype=np.uint32)
-        yield from (int(w) << 16 for w in words[(stray_hash(words) & np.uint32(block - 1)) == stray])
+        yield from (int(w) << 16 for w in words[_low_stray_hash(words) == stray])
         start += block
 
 
