@@ -116,20 +116,25 @@ def _synthesize_locked(root: Path, rig: Mapping[str, Calibration], frames: list[
     write_capture_header(root, rig, config, mounts, seed=seed)
     bev, front = bev_camera(config), front_camera(config)
     tick = progress or (lambda _msg: None)
+    last = None  # (frame number, cameras, views) of the frame rendered before
     for k in frames:
         frame = generate_street(seed, frame=k, rig=rig, textured=config.textured)
+        before = last if last is not None and last[0] == k - 1 else None  # its t is this frame's t-1
         cams = {}
         for name, calib in rig.items():
-            cams[name] = simulate_camera(frame, calib, config)
+            cams[name] = simulate_camera(frame, calib, config, prev=None if before is None else before[1][name].curr)
             tick(f"frame {k}: camera {name}")
-        views = {"bev": simulate_view(frame, bev, mounts.bev_camera_to_vehicle, config)}
-        tick(f"frame {k}: bev")
-        views["front"] = simulate_view(frame, front, mounts.front_camera_to_vehicle, config)
-        tick(f"frame {k}: front")
+        views = {}
+        for view, camera, mount in (("bev", bev, mounts.bev_camera_to_vehicle),
+                                    ("front", front, mounts.front_camera_to_vehicle)):
+            views[view] = simulate_view(frame, camera, mount, config, prev=None if before is None else before[2][view][1])
+            tick(f"frame {k}: {view}")
+        last = (k, cams, views)
         lidar, sem = simulate_lidar(frame, mounts.lidar_location, config)
         radar = simulate_radar(frame, mounts.radar_location, config)
         write_frame(root, frame, cameras=cams, views=views, lidar=lidar, semantic_lidar=sem, radar=radar,
-                    imu=simulate_imu(frame), gnss=simulate_gnss(frame), list_frame=list_frames)
+                    imu=simulate_imu(frame), gnss=simulate_gnss(frame), list_frame=list_frames,
+                    prev_written=before is not None)
         tick(f"frame {k}: lidar, radar, imu, gnss written")
 
 

@@ -12,6 +12,7 @@ import concurrent.futures
 import json
 import math
 import os
+import shutil
 import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -113,8 +114,15 @@ def ego_record(frame: StreetFrame) -> dict[str, Any]:
     }
 
 
-def write_images(directory: Path, images: CameraImages, instant: str) -> None:
-    """``rgb_, depth_, semantic_, instance_{instant}.png`` (CARLA BGRA encodings) in ``directory``."""
+def write_images(directory: Path, images: CameraImages, instant: str, *, copy_from: Path | None = None) -> None:
+    """``rgb_, depth_, semantic_, instance_{instant}.png`` (CARLA BGRA encodings) in ``directory``.
+    ``copy_from``: a folder whose ``*_curr.png`` files already encode ``images`` (the previous
+    frame's, for images at t-1 that are its images at t): their bytes are copied, not encoded."""
+    if copy_from is not None:
+        for kind in ("rgb", "depth", "semantic", "instance"):
+            with atomic_path(directory / f"{kind}_{instant}.png") as tmp:
+                shutil.copyfile(copy_from / f"{kind}_curr.png", tmp)
+        return
     write_image(directory / f"rgb_{instant}.png", rgb_to_bgra(images.rgb))
     write_image(directory / f"depth_{instant}.png", encode_depth(images.depth_m))
     write_image(directory / f"semantic_{instant}.png", encode_semantic(images.semantic))
@@ -284,20 +292,24 @@ def write_frame(
     imu: Mapping[str, Any],
     gnss: Mapping[str, Any],
     list_frame: bool = True,
+    prev_written: bool = False,
 ) -> Path:
     """Write one frame (layout in ``docs/capture_layout.md``) and list it in ``capture.json``
     (unless ``list_frame=False``: the shards of a capture, which `list_capture_frames` lists once
-    they have all finished, leave ``capture.json`` to it)."""
+    they have all finished, leave ``capture.json`` to it). ``prev_written``: the images at t-1 are
+    the previous frame's images at t, already written in ``root`` (the frame before it): their
+    ``*_prev.png`` files are byte copies of its ``*_curr.png``."""
     root = Path(root)
     d = frame_dir(root, frame.frame)
+    before = frame_dir(root, frame.frame - 1) if prev_written else None
     for cam, cap in cameras.items():
         for face in cap.curr:
             fd = d / "cameras" / cam / face
-            write_images(fd, cap.prev[face], "prev")
+            write_images(fd, cap.prev[face], "prev", copy_from=None if before is None else before / "cameras" / cam / face)
             write_images(fd, cap.curr[face], "curr")
             write_npy(fd / "dvs.npy", np.asarray(cap.dvs[face]).astype(DVS_EVENT_DTYPE))
     for name, (prev, curr, height) in views.items():
-        write_images(d / name, prev, "prev")
+        write_images(d / name, prev, "prev", copy_from=None if before is None else before / name)
         write_images(d / name, curr, "curr")
         write_image(d / name / "height_curr.exr", np.asarray(height, np.float32))
     write_npy(d / "lidar.npy", np.asarray(lidar, np.float32))

@@ -256,7 +256,7 @@ class _World:
     # --------------------------------------------------------------------------------- evaluation
     def frame(self, frame: int, dt_s: float, textured: bool = False) -> StreetFrame:
         t_prev = _T0_S + frame * dt_s
-        t_curr = t_prev + dt_s
+        t_curr = _T0_S + (frame + 1) * dt_s  # bit for bit the next frame's t_prev
         n_obj = len(self.movers) + 1
         loc = np.zeros((2, n_obj, 3))
         yaw = np.zeros((2, n_obj))

@@ -117,14 +117,16 @@ class Scene(eqx.Module):
 
     def object_poses(self, time) -> tuple[Float[Array, "O 3"], Float[Array, " O"]]:
         """``(location (O, 3), yaw (O,) radians)`` of every object at fraction ``time`` of the
-        interval (0 = t-1, 1 = t), interpolated linearly (yaw along the shorter arc)."""
+        interval (0 = t-1, 1 = t), interpolated linearly (yaw along the shorter arc). The ends are
+        exact: ``time`` 0 and 1 give the stored poses bit for bit, so that a scene whose t-1 poses
+        are another scene's t poses renders its t-1 exactly as the other renders t."""
         dtype = self.object_location.dtype
         a = jnp.asarray(time, dtype)
-        loc = (1 - a) * self.object_location[0] + a * self.object_location[1]
+        loc = (1 - a) * self.object_location[0] + a * self.object_location[1]  # exact at a = 0 and a = 1
         y0 = jnp.deg2rad(self.object_yaw_deg[0])
-        dy = jnp.deg2rad(self.object_yaw_deg[1]) - y0
-        dy = jnp.mod(dy + jnp.pi, 2 * jnp.pi) - jnp.pi
-        return loc, y0 + a * dy
+        y1 = jnp.deg2rad(self.object_yaw_deg[1])
+        dy = jnp.mod(y1 - y0 + jnp.pi, 2 * jnp.pi) - jnp.pi
+        return loc, jnp.where(a == 1, y1, y0 + a * dy)
 
     def object_to_world(self, time) -> Pose:
         """CARLA transforms (object frame -> world, Unreal) of every object at ``time``, batched ``(O,)``."""

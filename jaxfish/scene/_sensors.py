@@ -249,36 +249,46 @@ def frame_times_ns(frame: StreetFrame, substeps: int) -> np.ndarray:
     return np.rint((t0 + np.linspace(0.0, 1.0, substeps + 1) * frame.dt_s) * 1e9).astype(np.int64)
 
 
-def simulate_camera(frame: StreetFrame, calib: Calibration, config: CaptureConfig) -> CameraCapture:
-    """Cube faces at t-1 and t, and DVS events rendered from ``dvs_substeps`` sub-frames."""
+def simulate_camera(frame: StreetFrame, calib: Calibration, config: CaptureConfig, *,
+                    prev: Mapping[str, CameraImages] | None = None) -> CameraCapture:
+    """Cube faces at t-1 and t, and DVS events rendered from ``dvs_substeps`` sub-frames.
+
+    ``prev``: the faces at t-1 when they are already rendered, i.e. the previous frame's
+    `CameraCapture.curr` of the same camera and settings (frame ``k``'s t-1 is frame ``k - 1``'s t
+    bit for bit in `generate_street`, so the result is the same, one render per face fewer)."""
     rig = CubeRig(config.face_size, faces=config.faces, dtype=jnp.float32)
     mount = Pose(calib.camera_to_vehicle.rotation_matrix, calib.camera_to_vehicle.translation, dtype=jnp.float32)
     k = config.dvs_substeps
     times_ns = frame_times_ns(frame, k)
-    prev, curr, dvs = {}, {}, {}
+    before, curr, dvs = {}, {}, {}
     for name in config.faces:
         pose = mount @ rig.face_pose(name)
         logs = []
         for i in range(k + 1):
-            b = render_camera(frame, rig.face, pose, time=i / k, chunk_size=config.chunk_size)
-            if i == 0 or i == k:
-                img = _images(b)
-                (prev if i == 0 else curr)[name] = img
+            if i == 0 and prev is not None:
+                img = before[name] = prev[name]
+                rgb = img.rgb
+            elif i == 0 or i == k:
+                img = _images(render_camera(frame, rig.face, pose, time=i / k, chunk_size=config.chunk_size))
+                (before if i == 0 else curr)[name] = img
                 rgb = img.rgb
             else:
-                rgb = to_uint8(b.rgb)
+                rgb = to_uint8(render_camera(frame, rig.face, pose, time=i / k, chunk_size=config.chunk_size).rgb)
             logs.append(log_intensity(rgb, config.dvs_log_eps))
         dvs[name] = dvs_events(np.stack(logs), times_ns, config.dvs_threshold)
-    return CameraCapture(prev, curr, dvs)
+    return CameraCapture(before, curr, dvs)
 
 
-def simulate_view(frame: StreetFrame, camera: AbstractCamera, camera_to_vehicle: Pose, config: CaptureConfig) -> tuple[CameraImages, CameraImages, np.ndarray]:
+def simulate_view(frame: StreetFrame, camera: AbstractCamera, camera_to_vehicle: Pose, config: CaptureConfig, *,
+                  prev: CameraImages | None = None) -> tuple[CameraImages, CameraImages, np.ndarray]:
     """A single camera (BEV or front) at t-1 and t, plus its height map at t: the world z (metres
-    above the ground plane) of the surface each pixel sees (0 for sky)."""
-    b0 = render_camera(frame, camera, camera_to_vehicle, time=0.0, chunk_size=config.chunk_size)
+    above the ground plane) of the surface each pixel sees (0 for sky). ``prev``: the images at t-1
+    when already rendered (the previous frame's images at t: see `simulate_camera`)."""
+    if prev is None:
+        prev = _images(render_camera(frame, camera, camera_to_vehicle, time=0.0, chunk_size=config.chunk_size))
     b1 = render_camera(frame, camera, camera_to_vehicle, time=1.0, chunk_size=config.chunk_size)
     height = np.where(np.asarray(b1.hit), np.asarray(b1.point_world[..., 2]), 0.0).astype(np.float32)
-    return _images(b0), _images(b1), height
+    return prev, _images(b1), height
 
 
 # ---------------------------------------------------------------------------- lidar / radar

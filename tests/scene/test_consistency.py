@@ -13,6 +13,7 @@ from jaxfish.io import decode_depth, encode_depth
 from jaxfish.reprojection import CubeRig
 from jaxfish.scene import (
     CARLA_SEMANTIC_TAGS,
+    bev_camera,
     dvs_events,
     frame_times_ns,
     generate_street,
@@ -24,6 +25,7 @@ from jaxfish.scene import (
     simulate_imu,
     simulate_lidar,
     simulate_radar,
+    simulate_view,
 )
 from tests.tolerances import SCENE_BOX_PAD_M, SCENE_ROAD_Z_M
 
@@ -115,6 +117,36 @@ def test_dvs_events_synthetic():
     assert list(zip(ev["x"].tolist(), ev["pol"].tolist(), strict=True)) == [(0, True), (0, True), (1, False)]
     np.testing.assert_array_equal(ev["t"], [43, 86, 93])  # 0.3/0.35 of 50 ns, then 50 + 0.25/0.35, 50 + 0.3/0.35
     assert dvs_events(np.zeros((3, 2, 2)), np.array([0, 1, 2])).size == 0
+
+
+def _assert_same_images(a, b, what: str) -> None:
+    for key in ("rgb", "depth_m", "semantic", "actor_id"):
+        x, y = np.asarray(getattr(a, key)), np.asarray(getattr(b, key))
+        assert x.dtype == y.dtype and np.array_equal(x, y), f"{what}: {key} differs in {int((x != y).sum())} pixels"
+
+
+def test_a_frames_t_minus_1_is_the_previous_frames_t_bit_for_bit(small_rig, small_config):
+    """Frame k+1's poses at t-1 are frame k's at t (the same floats), so that its renders at t-1
+    are the previous frame's at t, bit for bit, and ``prev=`` (the kept renders) changes nothing."""
+    k0, k1 = (generate_street(0, frame=k, rig=small_rig) for k in (2, 3))
+    for field in ("object_location", "object_yaw_deg"):
+        assert np.array_equal(np.asarray(getattr(k0.scene, field)[1]), np.asarray(getattr(k1.scene, field)[0])), field
+    for a0, a1 in zip(k0.actors, k1.actors, strict=True):
+        assert (a1.location_prev, a1.rotation_prev) == (a0.location, a0.rotation)
+    calib = small_rig["MVL"]
+    c0, c1 = simulate_camera(k0, calib, small_config), simulate_camera(k1, calib, small_config)
+    kept = simulate_camera(k1, calib, small_config, prev=c0.curr)
+    for face in small_config.faces:
+        _assert_same_images(c0.curr[face], c1.prev[face], f"{face} at t of frame 2 and t-1 of frame 3")
+        _assert_same_images(kept.prev[face], c1.prev[face], f"{face} at t-1, kept")
+        _assert_same_images(kept.curr[face], c1.curr[face], f"{face} at t, with the kept t-1")
+        assert np.array_equal(kept.dvs[face], c1.dvs[face])
+    bev, mount = bev_camera(small_config), sensor_mounts(small_rig, small_config).bev_camera_to_vehicle
+    v0, v1 = simulate_view(k0, bev, mount, small_config), simulate_view(k1, bev, mount, small_config)
+    _assert_same_images(v0[1], v1[0], "BEV at t of frame 2 and t-1 of frame 3")
+    again = simulate_view(k1, bev, mount, small_config, prev=v0[1])
+    _assert_same_images(again[1], v1[1], "BEV at t, with the kept t-1")
+    assert again[0] is v0[1] and np.array_equal(again[2], v1[2])
 
 
 def test_generator_is_deterministic_and_seeded():
