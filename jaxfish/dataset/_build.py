@@ -72,9 +72,13 @@ def rig_constants_of(source) -> RigConstants:
 
 
 def clear_worker_cache() -> None:
-    """Forget the per-calibration constants (LUTs, rays) this process has built."""
+    """Forget the per-calibration constants (LUTs, rays) this process has built, and the fisheye
+    images kept for the next sample of a sequence (`jaxfish.pipeline.forget_last_images`)."""
+    from ..pipeline import forget_last_images
+
     with _CACHE_LOCK:
         _CACHE.clear()
+    forget_last_images()
 
 
 # ------------------------------------------------------------------------------------ fingerprint

@@ -297,6 +297,13 @@ def _json_copy(obj: Any) -> Any:
     return json.loads(to_json_text("<memory>", obj))
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a``, no longer writable: a frame's images are what the source rendered (the ground truth
+    keeps read-only faces for the next sample of a sequence: `jaxfish.pipeline.sample_truth`)."""
+    a.setflags(write=False)
+    return a
+
+
 class EmbeddedSource:
     """The embedded street scene (`jaxfish.scene`) rendered in memory, frame by frame: the frames
     `synthesize_capture` would write for ``rig``, ``seed`` and ``config``
@@ -319,6 +326,10 @@ class EmbeddedSource:
         self.cameras = _dataset_order(self.render_rig)
         self._calib_json = {n: _json_copy(calibration_to_dict(self.render_rig[n])) for n in self.cameras}
         self._rig = {n: calibration_from_dict(self._calib_json[n], source=f"<{n} calibration>") for n in self.cameras}
+        self._last: tuple | None = None  # (frame, {camera: faces at t}, BEV images at t) of the last read
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_last": None}  # renders stay in the process that made them
 
     @property
     def faces(self) -> tuple[str, ...]:
@@ -401,7 +412,9 @@ class EmbeddedSource:
         return to_json_text(f"<{camera} calibration>", self._calib_json[camera], indent=2).encode()
 
     def read(self, index: int, *, bev: bool = True) -> Frame:
-        """Render frame ``index`` of the scene and return it as a capture of it would decode."""
+        """Render frame ``index`` of the scene and return it as a capture of it would decode. Read
+        right after frame ``index - 1``, its images at t-1 are that frame's images at t (the same
+        bits: `jaxfish.scene.simulate_camera`'s ``prev``), not rendered again."""
         from ..io import CaptureError
         from ..io._capture import actor_to_dict, ego_record
         from ..io._carla import DVS_EVENT_DTYPE, decode_depth, decode_semantic, encode_depth, encode_semantic
@@ -427,19 +440,26 @@ class EmbeddedSource:
             return (np.asarray(img.rgb, np.uint8), decode_depth(encode_depth(img.depth_m)),
                     decode_semantic(encode_semantic(img.semantic)))
 
-        camera_frames = []
+        last = self._last
+        before = last if last is not None and last[0] == int(index) - 1 else None  # its t is this frame's t-1
+        camera_frames, kept = [], {}
         for name in self.cameras:
-            cap = simulate_camera(street, self.render_rig[name], self.config)
+            cap = simulate_camera(street, self.render_rig[name], self.config,
+                                  prev=None if before is None else before[1][name])
+            kept[name] = cap.curr
             prev = [quantised(cap.prev[f]) for f in faces]
             curr = [quantised(cap.curr[f]) for f in faces]
-            camera_frames.append(CameraFrame(CubeFaces(*(np.stack(x) for x in zip(*prev, strict=True))),
-                                             CubeFaces(*(np.stack(x) for x in zip(*curr, strict=True))),
+            camera_frames.append(CameraFrame(CubeFaces(*(_read_only(np.stack(x)) for x in zip(*prev, strict=True))),
+                                             CubeFaces(*(_read_only(np.stack(x)) for x in zip(*curr, strict=True))),
                                              tuple(np.asarray(cap.dvs[f]).astype(DVS_EVENT_DTYPE) for f in faces)))
         mounts = self._mounts()
-        view = None
+        view = kept_bev = None
         if bev:
-            p, c, height = simulate_view(street, bev_camera(self.config), mounts.bev_camera_to_vehicle, self.config)
+            p, c, height = simulate_view(street, bev_camera(self.config), mounts.bev_camera_to_vehicle, self.config,
+                                         prev=None if before is None else before[2])
             view = ViewFrame(ViewImages(*quantised(p)), ViewImages(*quantised(c)), np.asarray(height, np.float32))
+            kept_bev = c
+        self._last = (int(index), kept, kept_bev)  # a BEV left out (None) is rendered when asked for
         lidar, sem = simulate_lidar(street, mounts.lidar_location, self.config)
         radar = simulate_radar(street, mounts.radar_location, self.config)
         actors = _json_copy([actor_to_dict(a) for a in street.actors])

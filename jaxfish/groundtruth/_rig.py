@@ -27,6 +27,7 @@ from ..transforms import Pose
 from ._boxes3d import Boxes3D
 from ._fisheye import (
     CameraGroundTruth,
+    FisheyeImages,
     camera_to_world,
     fisheye_images,
     fisheye_images_pair,
@@ -104,6 +105,7 @@ def _vmap_rest(cameras, rays, planned, boxes_prev, boxes, statics):
     return map_rig(functools.partial(_rest_one, statics=statics), (cameras, rays), (boxes_prev, boxes), planned)
 
 
+_jit_fisheye_images = jax.jit(fisheye_images)
 _jit_pixel_rays = jax.jit(functools.partial(pixel_rays, dtype=jnp.float32))
 _vmap_pixel_rays = jax.jit(jax.vmap(functools.partial(pixel_rays, dtype=jnp.float32)))
 
@@ -185,6 +187,7 @@ def rig_ground_truth(
     rays: tuple[Float[ArrayLike, "C H W 3"], Bool[ArrayLike, "C H W"]] | Sequence[tuple] | None = None,
     batch: BatchMode = "auto",
     stacked: bool = True,
+    images_prev: Sequence[FisheyeImages | None] | None = None,
 ) -> CameraGroundTruth | list:
     """`fisheye_ground_truth` for every camera of a rig at once, for one sample or a batch of samples.
 
@@ -209,7 +212,12 @@ def rig_ground_truth(
     ``batch="loop"`` (each camera's program is compiled on its own anyway). ``batch``: how the
     cameras and samples are mapped (module docstring). ``stacked=False`` returns a list with one
     `CameraGroundTruth` per camera (a list of such lists for ``N`` samples) instead: with
-    ``batch="loop"`` it skips the copy of every output that stacking costs."""
+    ``batch="loop"`` it skips the copy of every output that stacking costs.
+
+    ``images_prev`` (one sample, ``batch="loop"``): per camera, its `FisheyeImages` at t-1 when
+    they are already known, or None. A sequence's previous sample computed them as its images at
+    t when its faces at t are this sample's faces at t-1: the same program on the same faces, so
+    the same bits. Those cameras resample only their faces at t (``faces_prev`` is not read)."""
     mode = resolve_batch_mode(batch)
     fp, fc = _faces_tuple(faces_prev, "faces_prev"), _faces_tuple(faces, "faces")
     single = fc[0].ndim == 5
@@ -220,6 +228,9 @@ def rig_ground_truth(
             raise ValueError(f"rig_ground_truth: faces_prev {a.shape} and faces {b.shape} differ")
     samples = (boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world)
     n, c = (1, fc[0].shape[0]) if single else fc[0].shape[:2]
+    if images_prev is not None and (mode != "loop" or not single or len(images_prev) != c):
+        raise ValueError(f"rig_ground_truth: images_prev needs batch='loop' and one sample, with one entry per camera "
+                         f"({c}); got batch={mode!r}, faces {fc[0].shape}, {len(images_prev)} entries")
     luts, cameras = _per_camera(luts, c, "luts", mode), _per_camera(cameras, c, "cameras", mode)
     if rays is not None:
         rays = _per_camera([tuple(r) for r in rays] if isinstance(rays, list) else tuple(rays), c, "rays", mode)
@@ -255,10 +266,13 @@ def rig_ground_truth(
     # sizes back, queue the rest asynchronously), then the next camera. Interleaving keeps one
     # camera's intermediates alive at a time, which is faster on CPU than planning every camera first
     # with one shared round trip, or than fusing the images into the plan program.
-    def one(cam, smp, item):
+    def one(cam, smp, item, known_prev):
         lut, camera, c2v_j, ray = cam
         (rgb_p, dep_p, tag_p), (rgb, dep, tag) = item
-        img_p, img = fisheye_images_pair(lut, rgb_p, dep_p, tag_p, rgb, dep, tag)
+        if known_prev is None:
+            img_p, img = fisheye_images_pair(lut, rgb_p, dep_p, tag_p, rgb, dep, tag)
+        else:
+            img_p, img = known_prev, _jit_fisheye_images(lut, rgb, dep, tag)
         return ground_truth_from_images(
             camera, ray, img_p, img, c2v_j, *smp, carla_version=carla_version, motion_threshold_m=motion_threshold_m,
             backward_flow=backward_flow, margin_m=margin_m, fallback_m=fallback_m, max_candidates=max_candidates,
@@ -270,7 +284,8 @@ def rig_ground_truth(
     for i in range(n):
         smp = samples if single else _at(samples, i)
         index = [(j,) if single else (i, j) for j in range(c)]
-        rows.append([one(per_camera[j], smp, tuple(tuple(x[index[j]] for x in xs) for xs in (fp, fc)))
+        known = images_prev or [None] * c
+        rows.append([one(per_camera[j], smp, tuple(tuple(x[index[j]] for x in xs) for xs in (fp, fc)), known[j])
                      for j in range(c)])
     if not stacked:
         return rows[0] if single else rows

@@ -47,5 +47,6 @@ from ._truth import CameraTruth as CameraTruth
 from ._truth import GroundTruthOptions as GroundTruthOptions
 from ._truth import SampleTruth as SampleTruth
 from ._truth import bev_truth as bev_truth
+from ._truth import forget_last_images as forget_last_images
 from ._truth import sample_truth as sample_truth
 from ._truth import sample_truths as sample_truths

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import threading
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -14,6 +15,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt8
 from .. import bev as jbev
 from .. import groundtruth as gt
 from ..cameras import AbstractCamera, Orthographic
+from ..groundtruth._rig import resolve_batch_mode
 from ..transforms import Pose
 from ._constants import RigConstants
 from ._events import camera_events
@@ -182,15 +184,76 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
     per_sample = jax.tree_util.tree_map(
         lambda *xs: np.asarray(xs[0]) if n == 1 else np.stack([np.asarray(x) for x in xs]),
         *[(m.boxes_prev, m.boxes, m.vehicle_to_world_prev, m.vehicle_to_world) for m in motions])
+    sequential = n == 1 and resolve_batch_mode(options.batch) == "loop"
+    known = [_LAST_IMAGES.images_prev(k, cf.faces_prev) for k, cf in zip(cams, frames[0].camera_frames, strict=True)] \
+        if sequential else None
     rows = gt.rig_ground_truth(
         [k.lut for k in cams], [k.camera for k in cams], c2v, _Faces(**prev), _Faces(**curr), *per_sample,
         rays=[k.rays for k in cams], carla_version=frames[0].carla_tags, batch=options.batch, stacked=False,
-        **options.ground_truth_keywords())
+        images_prev=known, **options.ground_truth_keywords())
     if n == 1:
         rows = [rows]  # one sample: the list of its cameras
+    if sequential:
+        for k, cf, truth in zip(cams, frames[0].camera_frames, rows[0], strict=True):
+            _LAST_IMAGES.keep(k, cf.faces, truth.images)
     return [[_camera_truth(k.name, k.camera, k.rays, truth, camera_events(cf.events, k.event_map), options.backward_flow)
              for k, cf, truth in zip(cams, f.camera_frames, row, strict=True)]
             for f, row in zip(frames, rows, strict=True)]
+
+
+class _LastImages:
+    """Each camera's last fisheye images at t, with the cube faces they were resampled from, so
+    that the next sample of a sequence, whose faces at t-1 are these faces (a byte-exact
+    comparison, never a guess), reuses them as its images at t-1 (the same program on the same
+    faces: the same bits as resampling them again). Only read-only faces are kept (a reader's
+    kept decodes, the embedded scene's renders, JAX arrays): a writable array could change
+    before the next sample. One entry per camera name; thread-safe."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._kept: dict[str, tuple] = {}
+
+    def keep(self, k, faces, images: gt.FisheyeImages) -> None:
+        arrays = tuple(np.asarray(getattr(faces, f)) for f in _FACE_FIELDS)
+        with self._lock:
+            if any(a.flags.writeable for a in arrays):
+                self._kept.pop(k.name, None)
+            else:
+                self._kept[k.name] = (k.lut, arrays, images)
+
+    def images_prev(self, k, faces_prev) -> gt.FisheyeImages | None:
+        """The kept images at t when ``faces_prev`` equals the faces they came from, else None."""
+        with self._lock:
+            kept = self._kept.get(k.name)
+        if kept is None or kept[0] is not k.lut:
+            return None
+        now = tuple(np.asarray(getattr(faces_prev, f)) for f in _FACE_FIELDS)
+        return kept[2] if all(_same_bytes(a, b) for a, b in zip(kept[1], now, strict=True)) else None
+
+    def clear(self) -> None:
+        with self._lock:
+            self._kept.clear()
+
+
+_FACE_FIELDS = ("rgb", "depth_m", "semantic")
+
+
+def _same_bytes(a: np.ndarray, b: np.ndarray) -> bool:
+    if a is b:
+        return True
+    if a.shape != b.shape or a.dtype != b.dtype:
+        return False
+    a, b = a.reshape(-1).view(np.uint8), b.reshape(-1).view(np.uint8)
+    step = 1 << 22  # a bounded temporary
+    return all(np.array_equal(a[i:i + step], b[i:i + step]) for i in range(0, a.size, step))
+
+
+_LAST_IMAGES = _LastImages()
+
+
+def forget_last_images() -> None:
+    """Drop the fisheye images `sample_truth` keeps for the next sample of a sequence."""
+    _LAST_IMAGES.clear()
 
 
 class _Faces(eqx.Module):
@@ -274,5 +337,12 @@ def sample_truth(frame: Frame, constants: RigConstants, options: GroundTruthOpti
     """Every ground truth of one frame's sample: each fisheye camera (`CameraTruth`: images,
     range and z-depth, semantics, instances, motion, flow, events, 2D boxes and their renderings),
     the BEV top view when the frame has one and ``options.bev`` (`BevTruth`), the 3D box corners
-    and displacements. ``constants``: the rig's `RigConstants` (cameras in the frame's order)."""
+    and displacements. ``constants``: the rig's `RigConstants` (cameras in the frame's order).
+
+    Frames of a sequence computed in order share work: with ``batch="loop"`` (the CPU default)
+    each camera's fisheye images at t are kept (one sample's worth per process,
+    `forget_last_images` drops them), and a next frame whose cube faces at t-1 are those faces,
+    byte for byte and read-only (`jaxfish.dataset.CaptureSource` and `jaxfish.dataset.EmbeddedSource`
+    give such frames), takes them as its images at t-1 instead of resampling them. The results
+    are the same bits either way."""
     return sample_truths([frame], constants, options)[0]

@@ -138,6 +138,26 @@ def test_stacked_luts_and_rays_give_the_same_result(batch):
         _assert_same(out[j], batch.reference[1][j])
 
 
+def test_known_images_at_t_minus_1_give_the_same_result(batch):
+    """``images_prev`` (a sequence's previous images at t): those cameras resample only their faces
+    at t, and their ground truth is each camera's; ``faces_prev`` is then not read."""
+    fp, fc, bp, bc, vp, vc = _sample(batch, 1)
+    known = [batch.reference[1][0].images_prev, None]
+    blank = type(fp)(*(None if x is None else np.zeros_like(x) for x in dataclasses.astuple(fp)))
+    blank_first = type(fp)(*(None if x is None else np.concatenate([z[:1], x[1:]])
+                             for x, z in zip(dataclasses.astuple(fp), dataclasses.astuple(blank), strict=True)))
+    rows = gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, blank_first, fc, bp, bc, vp, vc, backward_flow=True,
+                               batch="loop", stacked=False, images_prev=known)
+    for j in range(len(CAMERAS)):
+        _assert_same(rows[j], batch.reference[1][j])
+    for mode, faces_prev, faces in (("vmap", fp, fc), ("loop", batch.faces_prev, batch.faces)):  # vmap; two samples
+        with pytest.raises(ValueError, match="images_prev needs batch='loop' and one sample"):
+            gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, faces_prev, faces, bp, bc, vp, vc, batch=mode,
+                                images_prev=known)
+    with pytest.raises(ValueError, match="one entry per camera"):
+        gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, fp, fc, bp, bc, vp, vc, batch="loop", images_prev=known[:1])
+
+
 def test_errors_name_the_argument(batch):
     fp, fc, bp, bc, vp, vc = _sample(batch, 0)
     with pytest.raises(ValueError, match="entries in .luts. for 2 cameras"):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
@@ -71,6 +72,69 @@ def test_the_embedded_scene_in_memory_writes_the_bytes_of_render_capture_build(s
         assert a == b
     again = build_dataset(_embedded(), out)  # resumes from the embedded fingerprint
     assert again.ok and again.skipped == ["00000", "00001"] and not again.built
+
+
+def test_consecutive_frames_share_their_instant(small_capture):
+    """The embedded scene's frame 1 at t-1 is its frame 0 at t: the capture writer's ``*_prev.png``
+    files of frame 1 are byte copies of frame 0's ``*_curr.png`` (so that the builder decodes
+    them once), and the in-memory source, which keeps frame 0's renders at t for them, reads the
+    frame 1 a fresh source renders."""
+    frames = small_capture / "frames"
+    pairs = [(p, frames / "000001" / p.relative_to(frames / "000000").with_name(p.name.replace("_curr", "_prev")))
+             for p in sorted((frames / "000000").rglob("*_curr.png"))]
+    assert len(pairs) >= 4 * 5 * 4 + 4  # every face's four images and the BEV's
+    for curr, prev in pairs:
+        assert prev.read_bytes() == curr.read_bytes(), prev
+    in_order = _embedded()
+    in_order.read(0)
+    after, alone = in_order.read(1), _embedded().read(1)
+    _leaves_equal(after.camera_frames, alone.camera_frames)
+    _leaves_equal(after.bev, alone.bev)
+
+
+def test_a_sequence_takes_its_images_at_t_minus_1_from_the_previous_sample(small_capture, monkeypatch):
+    """Frame 1 after frame 0 resamples only its faces at t (its faces at t-1 are frame 0's at t,
+    byte for byte) and gives the bits of frame 1 alone; a frame whose faces at t-1 differ from the
+    kept ones, or whose faces are writable, resamples both instants."""
+    from jaxfish.groundtruth import _rig
+
+    pairs: list[int] = []
+    pair = _rig.fisheye_images_pair
+    monkeypatch.setattr(_rig, "fisheye_images_pair", lambda *a: (pairs.append(1), pair(*a))[1])
+    source = CaptureSource(small_capture)
+    constants = rig_constants_of(source)
+    cameras = len(constants.cameras)
+
+    def truth(frame):
+        pairs.clear()
+        out = jp.sample_truth(frame, constants)
+        return out, len(pairs)
+
+    def arrays(t):
+        return [(c.truth, c.z_depth_m, c.depth_rgb, c.semantic_rgb, c.instance_rgb, c.flow_rgb, c.events)
+                for c in t.cameras]
+
+    jp.forget_last_images()
+    first, resampled = truth(source.read(0))
+    assert resampled == cameras
+    frame1 = source.read(1)
+    after, resampled = truth(frame1)
+    assert resampled == 0  # every camera took its images at t-1 from frame 0
+    jp.forget_last_images()
+    alone, resampled = truth(frame1)
+    assert resampled == cameras
+    _leaves_equal(arrays(after), arrays(alone))
+    _, resampled = truth(source.read(0))  # frame 0's faces at t-1 are not frame 1's at t
+    assert resampled == cameras
+    # A frame whose faces at t-1 are frame 1's at t reuses them only when they were kept read-only.
+    shifted = eqx.tree_at(lambda f: f.camera_frames, frame1,
+                          tuple(eqx.tree_at(lambda c: c.faces_prev, cf, cf.faces) for cf in frame1.camera_frames))
+    writable = jax.tree_util.tree_map(np.array, frame1)
+    assert writable.camera_frames[0].faces.rgb.flags.writeable
+    for kept, expected in ((frame1, 0), (writable, cameras)):
+        truth(kept)
+        _, resampled = truth(shifted)
+        assert resampled == expected
 
 
 def test_each_stage_of_a_sample_runs_once(small_capture, reference_build, tmp_path, monkeypatch):
