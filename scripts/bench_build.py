@@ -1,4 +1,4 @@
-"""Benchmark: the dataset builder on a full-size one-sample capture (4 fisheyes 1280 x 966 from
+"""Benchmark: the dataset builder on a full-size two-frame capture (4 fisheyes 1280 x 966 from
 768 px cube faces + BEV 1024 x 1024, all modalities, I/O included), on smooth and on textured content.
 
 The embedded scene's smooth materials compress to about 1 bit per pixel as PNG, a CARLA render to
@@ -10,8 +10,9 @@ Per content it prints the RGB cube faces' bits per pixel (Up filter + zlib level
 writes PNGs) next to the real SynWoodScape frame's (``../shared/samples/``; the textured faces must
 be within ±30 %), and a **stage table** (`measure_stages`, in a fresh process after a compiling
 round): CPU seconds per sample of decode, ground truth, BEV, encode and file system, their sum, the
-whole `build_sample` from the capture and from the decoded frame in memory, the 2-core bound each
-implies (2 / CPU-s samples/s) and the process's peak memory. Then, on the textured capture (the
+whole `build_sample` from the capture and from the decoded frame in memory, the same for the next
+sample of a sequence (frame 1 built right after frame 0: its t-1 is frame 0's t, decoded and
+resampled once), the 2-core bound each implies (2 / CPU-s samples/s) and the process's peak memory. Then, on the textured capture (the
 goals count on it), after compilation: the serial rate (samples/s, the median of ``--repeat``
 rebuilds into fresh directories), the peak resident memory of the process (``resource.getrusage``),
 and the rate of dask ``LocalCluster`` builds with 1 and 2 single-threaded process workers, each
@@ -214,7 +215,7 @@ class _Decoded:
         return getattr(self._source, name)
 
     def read(self, index: int, *, bev: bool = True):
-        return self._frame
+        return self._frame[index] if isinstance(self._frame, dict) else self._frame
 
 
 def _replay_writes(files: dict[Path, bytes]) -> None:
@@ -240,7 +241,10 @@ def measure_stages(capture: str, scratch: str, repeat: int) -> dict:
     SHA-256 of every file and the marker included) from the capture, and the process's peak RSS
     after them (compilation included; not the later runs', which hold a decoded frame or a
     sample's files in memory); then the same builds from the decoded frame handed over in memory.
-    Run it in a fresh process (`in_child`)."""
+    With two frames or more, then the next sample of a sequence: `build_sample` of frame 1 right
+    after frame 0 (the builder's source, `CaptureSource` keeping its decodes: frame 1's images at
+    t-1, byte copies of frame 0's at t, are neither decoded nor resampled again), from the capture
+    and from the two decoded frames in memory. Run it in a fresh process (`in_child`)."""
     import jax
 
     from jaxfish.dataset import BuildOptions, CaptureSource, LayoutSink, build_sample, rig_constants_of
@@ -270,7 +274,20 @@ def measure_stages(capture: str, scratch: str, repeat: int) -> dict:
     whole_builds("total", source)  # first: the peak memory of builds from the capture, nothing else held
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     whole_builds("in memory", _Decoded(source, source.read(0)))  # the decoded frame held throughout
-    builds = {name: runs[name][1:] or runs[name] for name in ("total", "in memory")}  # without the compiling round
+    if 1 in source.frames:
+        def next_sample(name: str, src) -> None:
+            for i in range(repeat + 1):  # the first round compiles
+                build_sample(src, root / f"seq{i}", 0)
+                c = time.process_time()
+                build_sample(src, root / f"seq{i}", 1)
+                runs.setdefault(name, []).append(time.process_time() - c)
+                shutil.rmtree(root / f"seq{i}")
+
+        in_order = CaptureSource(capture)  # reuse_decoded, as the builder reads a capture
+        next_sample("sequence", in_order)
+        next_sample("sequence in memory", _Decoded(in_order, {0: in_order.read(0), 1: in_order.read(1)}))
+    names = [n for n in ("total", "in memory", "sequence", "sequence in memory") if n in runs]
+    builds = {name: runs[name][1:] or runs[name] for name in names}  # without the compiling round
     runs.clear()
     for i in range(repeat + 1):  # the first round compiles the stages' own programs
         if i == 1:
@@ -311,6 +328,11 @@ def print_stage_table(content: str, stages: dict, repeat: int) -> None:
           f"{bound(stages['total'])} samples/s (goal <= 2.00 CPU-s)")
     print(f"  {'build_sample from memory (no decode)':46s} {stages['in memory']:6.2f}   2-core bound "
           f"{bound(stages['in memory'])} samples/s (goal <= 1.50 CPU-s)")
+    if "sequence" in stages:
+        print(f"  {'next sample of a sequence, from the capture':46s} {stages['sequence']:6.2f}   2-core bound "
+              f"{bound(stages['sequence'])} samples/s (frame 1 after frame 0)")
+        print(f"  {'next sample of a sequence, from memory':46s} {stages['sequence in memory']:6.2f}   2-core bound "
+              f"{bound(stages['sequence in memory'])} samples/s")
     print(f"  peak memory of the builds from the capture (compilation included): {stages['peak_mb']:.0f} MB (goal < 4096)", flush=True)
 
 
@@ -411,7 +433,8 @@ def main() -> None:
                         help="instead: whole builds of every frame on these worker counts, e.g. 1,2,4 (with a serial "
                              "one), on the textured capture (the smooth one with --content smooth)")
     parser.add_argument("--caches", default="off,cold,warm", help="compile caches of the whole builds")
-    parser.add_argument("--frames", type=int, default=1, help="frames of the rendered captures")
+    parser.add_argument("--frames", type=int, default=2,
+                        help="frames of the rendered captures (two or more: the stage tables add the next sample of a sequence)")
     parser.add_argument("--whole-build", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.whole_build:
