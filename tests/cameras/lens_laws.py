@@ -88,9 +88,9 @@ def check_gradients(cam, uv: np.ndarray, *, eps: float = 1e-6) -> None:
     def project(v):
         return with_intrinsics(cam, v).project(points)[0].reshape(-1)
 
-    for fn in (unproject, project):
-        fwd = np.asarray(jax.jacfwd(fn)(jnp.asarray(p0)))
-        rev = np.asarray(jax.jacrev(fn)(jnp.asarray(p0)))
+    for fn in (jax.jit(unproject), jax.jit(project)):  # compiled once: 2 x n_params evaluations follow
+        fwd = np.asarray(jax.jit(jax.jacfwd(fn))(jnp.asarray(p0)))
+        rev = np.asarray(jax.jit(jax.jacrev(fn))(jnp.asarray(p0)))
         assert np.isfinite(fwd).all()
         np.testing.assert_allclose(fwd, rev, rtol=0, atol=tol.JAC_FWD_REV * max(1.0, np.abs(fwd).max()))
         steps = eps * np.maximum(np.abs(p0), 1e-2)
