@@ -12,12 +12,13 @@ be within ±30 %), and a **stage table** (`measure_stages`, in a fresh process a
 round): CPU seconds per sample of decode, ground truth, BEV, encode and file system, their sum, the
 whole `build_sample` from the capture and from the decoded frame in memory, the same for the next
 sample of a sequence (frame 1 built right after frame 0: its t-1 is frame 0's t, decoded and
-resampled once), the 2-core bound each implies (2 / CPU-s samples/s) and the process's peak memory. Then, on the textured capture (the
-goals count on it), after compilation: the serial rate (samples/s, the median of ``--repeat``
-rebuilds into fresh directories), the peak resident memory of the process (``resource.getrusage``),
-and the rate of dask ``LocalCluster`` builds with 1 and 2 single-threaded process workers, each
-pinned to its share of the cores as `build_dataset` pins them (`jaxfish.dataset.share_cores`; each
-worker warms up on the sample first; then ``2 x workers`` builds of the sample run as separate tasks).
+resampled once), the 2-core bound each implies (2 / CPU-s samples/s) and the process's peak
+memory. Then, on the textured capture (the goals count on it), after compilation: the serial rate
+(samples/s, the median of ``--repeat`` rebuilds into fresh directories), the peak resident memory
+of the process (``resource.getrusage``), and the rate of dask ``LocalCluster`` builds with 1 and 2
+single-threaded process workers, each pinned to its share of the cores as `build_dataset` pins them
+(`jaxfish.dataset.share_cores`; each worker warms up on the sample first; then ``2 x workers``
+builds of the sample run as separate tasks).
 
     uv run python scripts/bench_build.py                    # renders both captures first (minutes)
     uv run python scripts/bench_build.py --capture out/cap --textured-capture out/cap-tex  # kept, reused

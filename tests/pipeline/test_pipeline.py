@@ -115,7 +115,7 @@ def test_a_sequence_takes_its_images_at_t_minus_1_from_the_previous_sample(small
                 for c in t.cameras]
 
     jp.forget_last_images()
-    first, resampled = truth(source.read(0))
+    _, resampled = truth(source.read(0))
     assert resampled == cameras
     frame1 = source.read(1)
     after, resampled = truth(frame1)
