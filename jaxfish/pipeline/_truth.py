@@ -168,9 +168,13 @@ def _camera_truth(name: str, camera, rays, truth: gt.CameraGroundTruth, events: 
 
 def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: GroundTruthOptions,
                     motions: Sequence[Motion]) -> list[list[CameraTruth]]:
-    """Every fisheye camera of every frame, in one `rig_ground_truth` call."""
+    """Every fisheye camera of every frame, in one `rig_ground_truth` call; in loop mode one call
+    per frame, in order (the loop's results are each frame's alone either way, and a frame whose
+    faces at t-1 are the previous frame's at t takes its images at t-1 from it)."""
     cams = constants.cameras
     n, c = len(frames), len(cams)
+    if n > 1 and resolve_batch_mode(options.batch) == "loop":
+        return [_fisheye_truths([f], constants, options, [m])[0] for f, m in zip(frames, motions, strict=True)]
 
     def stack(instant: str, key: str) -> np.ndarray | list:
         """One sample: the cameras' arrays as they are (a list); several: one copy into an
@@ -299,10 +303,12 @@ def _check(frames: Sequence[Frame], constants: RigConstants) -> None:
 
 def sample_truths(frames: Sequence[Frame], constants: RigConstants,
                   options: GroundTruthOptions | None = None) -> list[SampleTruth]:
-    """`sample_truth` of several frames, their fisheye cameras computed in one batched call
-    (`jaxfish.groundtruth.rig_ground_truth` over frames and cameras; boxes padded to one size).
-    With ``batch="loop"`` (CPU) each result equals `sample_truth` of its frame alone; with
-    ``batch="vmap"`` values agree to float32 rounding."""
+    """`sample_truth` of several frames, their boxes padded to one size. With ``batch="vmap"``
+    their fisheye cameras are computed in one batched call (`jaxfish.groundtruth.rig_ground_truth`
+    over frames and cameras) and values agree with `sample_truth` to float32 rounding; with
+    ``batch="loop"`` (CPU) the frames are computed one after the other, in order, so that
+    consecutive frames share their common instant (see `sample_truth`), and each result equals
+    `sample_truth` of its frame alone."""
     options = options or GroundTruthOptions()
     frames = list(frames)
     _check(frames, constants)

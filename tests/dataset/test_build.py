@@ -335,7 +335,7 @@ def test_core_shares_split_the_cores_disjointly_or_round_robin():
 
 
 def test_batched_frames_build_equals_the_serial_build_and_isolates_failures(small_capture, reference_build, tmp_path):
-    """``batch_frames=2``: both samples' ground truth in one `rig_ground_truth` call (serial, and as
+    """``batch_frames=2``: both samples' ground truth in one `sample_truths` call (serial, and as
     one dask task): the bytes of the per-sample build; a corrupt file fails its own sample only."""
     from jaxfish.dataset import BuildOptions, DatasetError
 

@@ -126,6 +126,11 @@ def test_a_sequence_takes_its_images_at_t_minus_1_from_the_previous_sample(small
     _leaves_equal(arrays(after), arrays(alone))
     _, resampled = truth(source.read(0))  # frame 0's faces at t-1 are not frame 1's at t
     assert resampled == cameras
+    jp.forget_last_images()
+    pairs.clear()
+    batched = jp.sample_truths([source.read(0), frame1], constants)  # in order, as a sequence
+    assert len(pairs) == cameras  # frame 0's two instants; frame 1 only its t
+    _leaves_equal(arrays(batched[1]), arrays(alone))
     # A frame whose faces at t-1 are frame 1's at t reuses them only when they were kept read-only.
     shifted = eqx.tree_at(lambda f: f.camera_frames, frame1,
                           tuple(eqx.tree_at(lambda c: c.faces_prev, cf, cf.faces) for cf in frame1.camera_frames))
