@@ -216,6 +216,12 @@ def in_memory_source_file(rel: str) -> bool:
     return rel.startswith(".done/") or rel == "dataset.json"
 
 
+def comparable(label: str, files: dict[str, str]) -> dict[str, str]:
+    """``files`` as the run ``label`` is compared: for the run whose source is in memory, without
+    the files `in_memory_source_file` names."""
+    return {k: v for k, v in files.items() if label != IN_MEMORY_LABEL or not in_memory_source_file(k)}
+
+
 SUITE_CONFIG = ("small", "small_backward_flow")
 """The builds made in the test suite's JAX configuration (`use_test_suite_config`); the others in
 jaxfish's default one, as the CLI runs."""
@@ -239,11 +245,7 @@ def record(name: str, scratch: Path) -> bool:
     runs = run_fn(scratch)
     (label, files, capture_files), rest = runs[0], runs[1:]
     for other, other_files, _ in rest:  # e.g. the dask build must equal the serial one before recording it
-        mine = files
-        if other == IN_MEMORY_LABEL:  # its markers and dataset.json name its own source
-            mine = {k: v for k, v in files.items() if not in_memory_source_file(k)}
-            other_files = {k: v for k, v in other_files.items() if not in_memory_source_file(k)}
-        diff = tree_difference(mine, other_files)
+        diff = tree_difference(comparable(other, files), comparable(other, other_files))
         if any(diff.values()):
             print(f"{name}: {other} differs from {label}; not recorded:\n{describe_difference(diff)}")
             return False
@@ -271,8 +273,7 @@ def check(name: str, scratch: Path) -> bool:
         if label == IN_MEMORY_LABEL:
             skipped = sorted(k for k in recorded if in_memory_source_file(k))
             print(f"{name} ({label}): {len(skipped)} files naming the source not compared ({', '.join(skipped[:3])} ...)")
-            recorded = {k: v for k, v in recorded.items() if not in_memory_source_file(k)}
-            files = {k: v for k, v in files.items() if not in_memory_source_file(k)}
+        recorded, files = comparable(label, recorded), comparable(label, files)
         diff = tree_difference(recorded, files)
         if any(diff.values()):
             ok = False

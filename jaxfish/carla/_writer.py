@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -13,12 +12,12 @@ from typing import Any
 import numpy as np
 
 from ..io import (
-    atomic_path,
     atomic_write_text,
     write_events_npy,
     write_frame,
     write_image,
 )
+from ..io._atomic import atomic_copy_file
 from ..io._capture import frame_dir
 from ..io._json import to_json_text, write_json
 from ..scene import CaptureConfig, StreetFrame
@@ -33,8 +32,7 @@ def _write_raw_images(directory: Path, images: CarlaImages, instant: str, reuse:
     for kind in CarlaImages.KINDS:
         source = reuse / f"{kind}_curr.png" if reuse is not None else None
         if source is not None and source.is_file():  # the same tick, already encoded: copy its bytes
-            with atomic_path(directory / f"{kind}_{instant}.png") as tmp:
-                shutil.copyfile(source, tmp)
+            atomic_copy_file(source, directory / f"{kind}_{instant}.png")
         else:
             write_image(directory / f"{kind}_{instant}.png", getattr(images, kind))
 

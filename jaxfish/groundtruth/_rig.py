@@ -281,10 +281,10 @@ def rig_ground_truth(
     # Each camera's faces in one indexing step (a view of NumPy faces, one slice of device faces).
     per_camera = [(luts[j], cameras[j], _at(c2v, j), rays[j]) for j in range(c)]
     rows = []
+    known = images_prev or [None] * c
     for i in range(n):
         smp = samples if single else _at(samples, i)
         index = [(j,) if single else (i, j) for j in range(c)]
-        known = images_prev or [None] * c
         rows.append([one(per_camera[j], smp, tuple(tuple(x[index[j]] for x in xs) for xs in (fp, fc)), known[j])
                      for j in range(c)])
     if not stacked:

@@ -12,7 +12,6 @@ import concurrent.futures
 import json
 import math
 import os
-import shutil
 import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -35,7 +34,7 @@ from ..scene import (
     bev_camera,
     front_camera,
 )
-from ._atomic import atomic_path
+from ._atomic import atomic_copy_file, atomic_path
 from ._calibration_json import load_rig, save_rig
 from ._carla import (
     DVS_EVENT_DTYPE,
@@ -120,8 +119,7 @@ def write_images(directory: Path, images: CameraImages, instant: str, *, copy_fr
     frame's, for images at t-1 that are its images at t): their bytes are copied, not encoded."""
     if copy_from is not None:
         for kind in ("rgb", "depth", "semantic", "instance"):
-            with atomic_path(directory / f"{kind}_{instant}.png") as tmp:
-                shutil.copyfile(copy_from / f"{kind}_curr.png", tmp)
+            atomic_copy_file(copy_from / f"{kind}_curr.png", directory / f"{kind}_{instant}.png")
         return
     write_image(directory / f"rgb_{instant}.png", rgb_to_bgra(images.rgb))
     write_image(directory / f"depth_{instant}.png", encode_depth(images.depth_m))
