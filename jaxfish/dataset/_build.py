@@ -20,6 +20,7 @@ import contextlib
 import hashlib
 import json
 import os
+import pickle
 import threading
 import time
 import traceback
@@ -72,13 +73,35 @@ def rig_constants_of(source) -> RigConstants:
 
 
 def clear_worker_cache() -> None:
-    """Forget the per-calibration constants (LUTs, rays) this process has built, and the fisheye
-    images kept for the next sample of a sequence (`jaxfish.pipeline.forget_last_images`)."""
+    """Forget the per-calibration constants (LUTs, rays) this process has built, the source its
+    dask tasks share (`_kept_source`) and the fisheye images kept for the next sample of a sequence
+    (`jaxfish.pipeline.forget_last_images`)."""
     from ..pipeline import forget_last_images
 
     with _CACHE_LOCK:
         _CACHE.clear()
+        _KEPT.clear()
     forget_last_images()
+
+
+_KEPT: list[tuple[bytes, Any]] = []
+
+
+def _kept_source(source):
+    """This process's instance of ``source``: the first task of a worker keeps the source it was
+    handed, and later tasks handed an equal one (the same pickled state) use the kept instance.
+    Every dask task unpickles its own copy of the source, which would start without the decodes and
+    renders a source keeps of its last frame (`CaptureSource` ``reuse_decoded``, `EmbeddedSource`);
+    with the kept instance, a worker's consecutive samples reuse them as a serial build's do.
+    Only the last source is kept."""
+    try:
+        key = pickle.dumps(source)
+    except Exception:  # noqa: BLE001 - a source that does not pickle is used as it is
+        return source
+    with _CACHE_LOCK:
+        if not _KEPT or _KEPT[0][0] != key:
+            _KEPT[:] = [(key, source)]
+        return _KEPT[0][1]
 
 
 # ------------------------------------------------------------------------------------ fingerprint
@@ -350,6 +373,12 @@ def _batch_task(source, out_dir: str, frames: list[int], options: BuildOptions) 
     except Exception:  # a failing sample is reported, never stops the others
         return [(sample_id(f), None) if is_complete(out_dir, sample_id(f)) else _sample_task(source, out_dir, f, options)
                 for f in frames]
+
+
+def _worker_batch_task(source, out_dir: str, frames: list[int],
+                       options: BuildOptions) -> list[tuple[str, str | None]]:
+    """`_counted_batch_task` on the worker's kept instance of ``source`` (`_kept_source`): the dask task."""
+    return _counted_batch_task(_kept_source(source), out_dir, frames, options)
 
 
 def _counted_batch_task(source, out_dir: str, frames: list[int],
@@ -635,12 +664,18 @@ def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, sc
             cluster = local_cluster(int(workers or 1), processes=processes)  # process workers pin themselves
             client = Client(cluster)
         batches = {f"jaxfish-samples-{sample_id(b[0])}-{sample_id(b[-1])}": b for b in _batches(frames, options.batch_frames)}
-        for key in list(batches)[:WARM_BATCHES] if _warms_cache(cluster, processes, options, len(batches)) else []:
+        warm = list(batches)[:WARM_BATCHES] if _warms_cache(cluster, processes, options, len(batches)) else []
+        futures = _warm_workers(client, source, options) if warm else []  # held: a released future is cancelled
+        for key in warm:
             for sid, err in _counted_batch_task(source, out_dir, batches.pop(key), options):
                 record(sid, err)
-        futures = [client.submit(_counted_batch_task, source, out_dir, b, options, key=key, pure=False)
-                   for key, b in batches.items()]
+        runs = _worker_runs(client, list(batches))
+        futures += [client.submit(_worker_batch_task, source, out_dir, batches[key], options, key=key, pure=False,
+                                  priority=len(runs) - i, **_placement(worker))  # a worker runs its batches in order
+                    for i, (key, worker) in enumerate(runs)]
         for fut in as_completed(futures):
+            if str(fut.key) not in batches:  # a worker's warm-up: it reports nothing
+                continue
             try:
                 results = fut.result()
             except Exception as e:  # the worker itself died
@@ -661,6 +696,64 @@ def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, sc
             _STOP.clear()
             if quiet is not None:
                 quiet()
+
+
+def _worker_addresses(client) -> list[str]:
+    """The addresses of the cluster's workers now, in worker-name order (`local_cluster` names them
+    0..N-1, as `share_cores` pins them); empty when the scheduler cannot tell."""
+    try:
+        info = client.scheduler_info()["workers"]
+    except Exception:  # noqa: BLE001 - an unanswered query: no placement
+        return []
+    return sorted(info, key=lambda a: (str(info[a].get("name", a)), a))
+
+
+def _worker_runs(client, keys: list[str]) -> list[tuple[str, str | None]]:
+    """``(batch key, worker address or None)`` in submission order: with W >= 2 workers, the
+    batches (in frame order) split into W contiguous runs of sizes differing by at most one, run i
+    on worker i, submitted step by step across the runs. A worker therefore builds consecutive
+    frames one after the other, as a serial build does, and each sample after the first of its run
+    finds its t-1 images already resampled (`jaxfish.pipeline.sample_truth`); the placement is a
+    preference (`_placement`), so an idle worker still takes another's pending batches, and a lost
+    worker's batches go to the others."""
+    addresses = _worker_addresses(client)
+    if len(addresses) < 2:
+        return [(key, None) for key in keys]
+    bounds = [round(i * len(keys) / len(addresses)) for i in range(len(addresses) + 1)]
+    runs = [list(zip(keys[a:b], [w] * (b - a), strict=True)) for w, a, b in zip(addresses, bounds[:-1], bounds[1:], strict=True)]
+    return [run[step] for step in range(max(map(len, runs))) for run in runs if step < len(run)]
+
+
+def _placement(worker: str | None) -> dict[str, Any]:
+    """`client.submit` keywords that prefer ``worker`` (nothing for None)."""
+    return {} if worker is None else {"workers": [worker], "allow_other_workers": True}
+
+
+def _warm_worker(source, options: BuildOptions) -> None:
+    """A worker's preparation before its first sample: the process settings and the source's rig
+    constants (`rig_constants_of`, loading the LUT programs from the compile cache). A failure is
+    left to the samples, which report it with their reason."""
+    with contextlib.suppress(Exception):
+        _prepare_process(options)
+        rig_constants_of(_kept_source(source))
+
+
+def _warm_workers(client, source, options: BuildOptions) -> list:
+    """Start `_warm_worker` on every worker of ``client`` (one task each, pinned to it), while the
+    driver builds the `WARM_BATCHES`: a worker's start-up (imports, rig constants) then overlaps the
+    driver's compilation instead of delaying the worker's first sample. The driver builds its own
+    rig constants first, so that the workers load their programs from the cache. Returns the tasks'
+    futures."""
+    with contextlib.suppress(Exception):  # a failure is the driver's first sample's to report
+        _prepare_process(options)
+        rig_constants_of(source)
+    return [client.submit(_warm_worker, source, options, key=f"jaxfish-warm-{i}", pure=False, workers=[address],
+                          allow_other_workers=False, priority=_WARM_PRIORITY)
+            for i, address in enumerate(_worker_addresses(client))]
+
+
+_WARM_PRIORITY = 2**62
+"""Dask priority of the workers' warm-up tasks: above every sample's (`_worker_runs`' position)."""
 
 
 WARM_BATCHES = 2

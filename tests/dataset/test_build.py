@@ -19,7 +19,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from jaxfish.dataset import LAYOUT, build_dataset, is_complete, sample_files
+from jaxfish.dataset import LAYOUT, build_dataset, is_complete, sample_files, sample_id
 from jaxfish.io._folder import is_temporary
 from tests.helpers import assert_same_tree
 
@@ -332,6 +332,89 @@ def test_core_shares_split_the_cores_disjointly_or_round_robin():
     assert core_shares(3, [0, 1]) == [(0,), (1,), (0,)]
     with pytest.raises(ValueError, match="at least one worker"):
         core_shares(0, [0])
+
+
+class _Scheduler:
+    """A stand-in for a dask client: only ``scheduler_info`` (``None``: the query fails)."""
+
+    def __init__(self, workers: dict | None):
+        self.workers = workers
+
+    def scheduler_info(self) -> dict:
+        if self.workers is None:
+            raise OSError("no scheduler")
+        return {"workers": self.workers}
+
+
+def test_dask_workers_build_contiguous_runs_of_frames_in_order():
+    """With two workers or more, each worker is handed a contiguous run of the batches (in frame
+    order, run i on worker i by name), submitted step by step across the runs, so that a worker's
+    samples follow each other as in a serial build; fewer workers, or none known, place nothing."""
+    from jaxfish.dataset._build import _placement, _worker_runs
+
+    keys = [f"k{i}" for i in range(7)]
+    two = _Scheduler({"tcp://b": {"name": 1}, "tcp://a": {"name": 0}})
+    assert _worker_runs(two, keys) == [("k0", "tcp://a"), ("k4", "tcp://b"), ("k1", "tcp://a"), ("k5", "tcp://b"),
+                                       ("k2", "tcp://a"), ("k6", "tcp://b"), ("k3", "tcp://a")]
+    three = _Scheduler({f"tcp://{n}": {"name": n} for n in range(3)})
+    runs = _worker_runs(three, keys[:4])
+    assert sorted(runs) == [("k0", "tcp://0"), ("k1", "tcp://1"), ("k2", "tcp://1"), ("k3", "tcp://2")]
+    assert [k for k, w in runs if w == "tcp://1"] == ["k1", "k2"]  # a run in frame order
+    for client in (_Scheduler({"tcp://a": {"name": 0}}), _Scheduler({}), _Scheduler(None)):
+        assert _worker_runs(client, keys) == [(k, None) for k in keys]
+    assert _worker_runs(two, []) == []
+    assert _placement(None) == {}
+    assert _placement("tcp://a") == {"workers": ["tcp://a"], "allow_other_workers": True}
+
+
+def test_each_dask_worker_runs_its_frames_in_frame_order(monkeypatch):
+    """On a real (thread-worker) cluster, the submitted runs reach the workers in frame order:
+    each worker builds its contiguous run first to last (dask alone would run the later
+    submissions first). Work stealing is off so that no batch changes worker."""
+    pytest.importorskip("distributed")
+    import threading
+
+    import dask
+    from distributed import get_worker
+
+    from jaxfish.dataset import BuildOptions, _build
+
+    ran: list[tuple[str, int]] = []
+    lock = threading.Lock()
+
+    def task(source, out_dir, frames, options):
+        with lock:
+            ran.extend((str(get_worker().name), f) for f in frames)
+        return [(sample_id(f), None) for f in frames]
+
+    monkeypatch.setattr(_build, "_counted_batch_task", task)
+    recorded: list[str] = []
+    with dask.config.set({"distributed.scheduler.work-stealing": False}):
+        _build._run_dask("a source", "out", list(range(10)), BuildOptions(), None, 2, False,
+                         lambda sid, err: recorded.append(sid))
+    assert sorted(recorded) == [sample_id(f) for f in range(10)]
+    runs = {}
+    for worker, frame in ran:
+        runs.setdefault(worker, []).append(frame)
+    assert sorted(runs.values()) == [[0, 1, 2, 3, 4], [5, 6, 7, 8, 9]]
+
+
+def test_a_worker_keeps_the_source_its_tasks_are_handed(small_capture, tmp_path):
+    """Every dask task unpickles its own copy of the source; `_kept_source` hands the worker's
+    tasks the first instance of an equal source (same pickled state), so that its kept decodes
+    serve the next frame, and forgets it for another source and with `clear_worker_cache`."""
+    from jaxfish.dataset import CaptureSource, clear_worker_cache
+    from jaxfish.dataset._build import _kept_source
+
+    clear_worker_cache()
+    first = _kept_source(CaptureSource(small_capture))
+    assert _kept_source(pickle.loads(pickle.dumps(first))) is first
+    other = CaptureSource(_copy(small_capture, tmp_path, "other"))
+    assert _kept_source(other) is other
+    assert _kept_source(pickle.loads(pickle.dumps(first))) is not first  # only the last source is kept
+    clear_worker_cache()
+    fresh = CaptureSource(small_capture)
+    assert _kept_source(fresh) is fresh
 
 
 def test_batched_frames_build_equals_the_serial_build_and_isolates_failures(small_capture, reference_build, tmp_path):
