@@ -28,7 +28,9 @@ builds of the sample run as separate tasks).
 whole builds, each in a fresh process: serial and on local clusters of that many pinned process
 workers (4 on 2 cores: two per core), with no compile cache (``off``), an empty one (``cold``) and
 the one the cold build filled (``warm``) (``--caches``); it prints each build's wall time
-(compilation, cluster start included), the time to its first sample, and its rate after the first.
+(compilation, cluster start included), the time to its first sample, its rate after the first,
+and its rate over the second half of its samples (every worker past its start: the rate a long build
+keeps).
 
     uv run python scripts/bench_build.py --content textured --scale 0.25 --frames 8 --workers 1,2,4
 
@@ -376,8 +378,13 @@ def _whole_build(capture: str, out: str, workers: int, cache: str) -> dict:
                            workers=workers or None, progress=lambda _s, _e: stamps.append(time.perf_counter()))
     wall = time.perf_counter() - start
     assert report.ok, report.summary()
-    after = (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 and stamps[-1] > stamps[0] else 0.0
-    return {"wall_s": wall, "first_s": stamps[0] - start, "after_rate": after, "samples": len(report.built)}
+    return {"wall_s": wall, "first_s": stamps[0] - start, "after_rate": _rate(stamps), "samples": len(report.built),
+            "half_rate": _rate(stamps[len(stamps) // 2 - 1:] if len(stamps) >= 4 else [])}
+
+
+def _rate(stamps: list[float]) -> float:
+    """Samples per second between the first and the last of ``stamps`` (completion times)."""
+    return (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 and stamps[-1] > stamps[0] else 0.0
 
 
 def _whole_build_in_a_process(capture: Path, out: Path, workers: int, cache: str) -> dict:
@@ -398,7 +405,8 @@ def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list
     local clusters of ``workers`` pinned process workers, with no compile cache (``off``), an
     empty one (``cold``) and the one the cold build filled (``warm``)."""
     print(f"whole builds of {len(_frames(capture))} samples, each in a fresh process (load {os.getloadavg()[0]:.1f}):")
-    print(f"  {'build':22s} {'cache':5s} {'wall s':>7s} {'first s':>8s} {'samples/s after 1st':>20s}")
+    print(f"  {'build':22s} {'cache':5s} {'wall s':>7s} {'first s':>8s} {'samples/s after 1st':>20s} "
+          f"{'second half':>12s}")
     for n in [0, *workers]:
         name = "serial (--no-dask)" if n == 0 else f"--workers {n}"
         folder = scratch / f"xla-{n}"
@@ -407,7 +415,8 @@ def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list
             out = scratch / f"whole-{n}-{cache}"
             r = _whole_build_in_a_process(capture, out, n, "" if cache == "off" else str(folder))
             shutil.rmtree(out, ignore_errors=True)
-            print(f"  {name:22s} {cache:5s} {r['wall_s']:7.1f} {r['first_s']:8.1f} {r['after_rate']:20.2f}", flush=True)
+            print(f"  {name:22s} {cache:5s} {r['wall_s']:7.1f} {r['first_s']:8.1f} {r['after_rate']:20.2f} "
+                  f"{r['half_rate']:12.2f}", flush=True)
 
 
 def _frames(capture: Path) -> list:
