@@ -694,6 +694,9 @@ def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, sc
                         closable.close()
         finally:
             _STOP.clear()
+            if cluster is not None and not processes:  # thread workers kept the source in this process
+                with _CACHE_LOCK:
+                    _KEPT.clear()
             if quiet is not None:
                 quiet()
 

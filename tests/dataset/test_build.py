@@ -152,6 +152,9 @@ def test_dask_local_cluster_build_equals_the_serial_build(small_capture, referen
     report = build_dataset(small_capture, out, workers=2, processes=False)
     assert report.ok and sorted(report.built) == list(SAMPLES)
     assert_same_tree(reference_build[0], out)
+    from jaxfish.dataset._build import _KEPT
+
+    assert not _KEPT  # the thread workers' kept source (this process's) is dropped with the cluster
     from distributed import LocalCluster
 
     # HTTP routes on a free port, not 8787: another cluster on the machine must not make it warn.
