@@ -654,6 +654,7 @@ def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, sc
         raise DatasetError("dask.distributed is not installed: pip install 'jaxfish[distributed]'") from e
     cluster = client = quiet = None
     futures: list = []
+    warming: list = []  # held until the end: a released future is cancelled
     try:
         if scheduler is not None:
             try:
@@ -665,17 +666,15 @@ def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, sc
             client = Client(cluster)
         batches = {f"jaxfish-samples-{sample_id(b[0])}-{sample_id(b[-1])}": b for b in _batches(frames, options.batch_frames)}
         warm = list(batches)[:WARM_BATCHES] if _warms_cache(cluster, processes, options, len(batches)) else []
-        futures = _warm_workers(client, source, options) if warm else []  # held: a released future is cancelled
+        warming = _warm_workers(client, source, options) if warm else []
         for key in warm:
             for sid, err in _counted_batch_task(source, out_dir, batches.pop(key), options):
                 record(sid, err)
         runs = _worker_runs(client, list(batches))
-        futures += [client.submit(_worker_batch_task, source, out_dir, batches[key], options, key=key, pure=False,
-                                  priority=len(runs) - i, **_placement(worker))  # a worker runs its batches in order
-                    for i, (key, worker) in enumerate(runs)]
+        futures = [client.submit(_worker_batch_task, source, out_dir, batches[key], options, key=key, pure=False,
+                                 priority=len(runs) - i, **_placement(worker))  # a worker runs its batches in order
+                   for i, (key, worker) in enumerate(runs)]
         for fut in as_completed(futures):
-            if str(fut.key) not in batches:  # a worker's warm-up: it reports nothing
-                continue
             try:
                 results = fut.result()
             except Exception as e:  # the worker itself died
@@ -684,7 +683,7 @@ def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, sc
                 record(sid, err)
     except KeyboardInterrupt:
         quiet = _quiet_dask_logs()  # the workers' ends are expected: no warnings, no tracebacks
-        _stop_workers(client, cluster, futures, processes)
+        _stop_workers(client, cluster, futures + warming, processes)
         raise
     finally:
         try:
@@ -742,7 +741,7 @@ def _warm_worker(source, options: BuildOptions) -> None:
 
 
 def _warm_workers(client, source, options: BuildOptions) -> list:
-    """Start `_warm_worker` on every worker of ``client`` (one task each, pinned to it), while the
+    """Start `_warm_worker` on every worker of ``client`` (one task each, placed on it), while the
     driver builds the `WARM_BATCHES`: a worker's start-up (imports, rig constants) then overlaps the
     driver's compilation instead of delaying the worker's first sample. The driver builds its own
     rig constants first, so that the workers load their programs from the cache. Returns the tasks'
@@ -750,8 +749,8 @@ def _warm_workers(client, source, options: BuildOptions) -> list:
     with contextlib.suppress(Exception):  # a failure is the driver's first sample's to report
         _prepare_process(options)
         rig_constants_of(source)
-    return [client.submit(_warm_worker, source, options, key=f"jaxfish-warm-{i}", pure=False, workers=[address],
-                          allow_other_workers=False, priority=_WARM_PRIORITY)
+    return [client.submit(_warm_worker, source, options, key=f"jaxfish-warm-{i}", pure=False, priority=_WARM_PRIORITY,
+                          **_placement(address))  # a preference: a restarted worker's warm-up runs elsewhere
             for i, address in enumerate(_worker_addresses(client))]
 
 
