@@ -693,9 +693,8 @@ def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, sc
                         closable.close()
         finally:
             _STOP.clear()
-            if cluster is not None and not processes:  # thread workers kept the source in this process
-                with _CACHE_LOCK:
-                    _KEPT.clear()
+            with _CACHE_LOCK:  # thread workers (local or behind a scheduler) kept the source in this process
+                _KEPT.clear()
             if quiet is not None:
                 quiet()
 

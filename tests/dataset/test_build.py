@@ -162,6 +162,7 @@ def test_dask_local_cluster_build_equals_the_serial_build(small_capture, referen
                       scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster:
         report = build_dataset(small_capture, tmp_path / "via_scheduler", scheduler=cluster.scheduler_address)
     assert report.ok and sorted(report.built) == list(SAMPLES)
+    assert not _KEPT  # its thread workers run in this process too
     assert_same_tree(reference_build[0], tmp_path / "via_scheduler")
 
 
