@@ -80,13 +80,20 @@ def _as_rgb(a: np.ndarray) -> np.ndarray:
 
 
 def _text(canvas: np.ndarray, x: int, y: int, text: str, size: int = 14) -> None:
-    """Draw white text with its baseline at (x, y) (no-op without a usable font)."""
+    """Draw white text with its baseline at (x, y) (no-op without a usable font). The glyphs are
+    rendered into a crop of the canvas around the text (a margin of two font sizes above the
+    baseline, one below and at each end), not the whole canvas."""
     try:
         import OpenImageIO as oiio
 
-        buf = oiio.ImageBuf(np.ascontiguousarray(canvas))
-        if oiio.ImageBufAlgo.render_text(buf, int(x), int(y), text, size, "", (1.0, 1.0, 1.0)):
-            canvas[...] = buf.get_pixels(oiio.UINT8).reshape(canvas.shape)
+        y0, y1 = max(0, int(y) - 2 * size), min(canvas.shape[0], int(y) + size)
+        x0, x1 = max(0, int(x) - size), min(canvas.shape[1], int(x) + (len(text) + 1) * size)
+        if y0 >= y1 or x0 >= x1:
+            return
+        crop = np.ascontiguousarray(canvas[y0:y1, x0:x1])
+        buf = oiio.ImageBuf(crop)
+        if oiio.ImageBufAlgo.render_text(buf, int(x) - x0, int(y) - y0, text, size, "", (1.0, 1.0, 1.0)):
+            canvas[y0:y1, x0:x1] = buf.get_pixels(oiio.UINT8).reshape(crop.shape)
     except Exception:  # no font / renderer: the fixed layout is documented instead
         return
 
@@ -96,6 +103,9 @@ def flow_wheel_tile(radius: int) -> tuple[np.ndarray, np.ndarray]:
     the pixel at offset ``(du, dv)`` from the centre has `jaxfish.flow_to_color`'s colour of the
     flow ``(du, dv) / radius`` with ``max_radius = 1`` (float32), i.e. of a flow in that image
     direction whose magnitude is that fraction of the image's largest."""
+    import functools
+
+    import jax
     import jax.numpy as jnp
 
     from ..groundtruth import flow_to_color
@@ -104,7 +114,7 @@ def flow_wheel_tile(radius: int) -> tuple[np.ndarray, np.ndarray]:
     off = np.arange(-r, r + 1, dtype=np.float32) / np.float32(max(r, 1))
     du, dv = np.meshgrid(off, off, indexing="xy")
     flow = jnp.asarray(np.stack([du, dv], axis=-1), jnp.float32)
-    rgb = np.asarray(flow_to_color(flow, max_radius=1.0))
+    rgb = np.asarray(jax.jit(functools.partial(flow_to_color, max_radius=1.0))(flow))  # one program, not op by op
     return rgb, du * du + dv * dv <= 1.0
 
 
