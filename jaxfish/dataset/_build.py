@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._errors import JaxfishError
-from ..pipeline import EmptyCameraError, RigConstants, SampleTruth, SensorRecords, rig_constants, sample_truths
+from ..pipeline import EmptyCameraError, Frame, RigConstants, SampleTruth, SensorRecords, rig_constants, sample_truths
 from ._fingerprint import frame_fingerprint as frame_fingerprint
 from ._layout import LAYOUT, LAYOUT_VERSION, sample_id
 from ._options import DONE_DIR as DONE_DIR
@@ -280,11 +280,27 @@ def build_samples(source, out_dir: str | os.PathLike, frames: Sequence[int],
     records = [{**capture, _frame_key(f): source.frame_fingerprint(f)} for f in frames]
     if not source.cameras and not (options.bev and source.has_bev()):
         raise DatasetError(f"{source.where}: no camera to build (field 'cameras' is empty)")
-    constants = rig_constants_of(source)
     gt_options = options.ground_truth()
-    loaded = [source.read(f, bev=options.bev) for f in frames]
+    constants, loaded = _constants_and_frames(source, frames, options.bev)
     truths = sample_truths(loaded, constants, gt_options)
     return [_write_sample(source, out, truth, options, record) for truth, record in zip(truths, records, strict=True)]
+
+
+def _constants_and_frames(source, frames: list[int], bev: bool) -> tuple[RigConstants, list[Frame]]:
+    """The rig constants and the decoded ``frames``. Constants not yet built in this process are
+    built on a second thread while the frames are read (compiling is mostly one core's work, a read
+    decodes or renders on the others); an error of the constants is raised before one of the reads,
+    as if they were built first."""
+    if source.constants_key() in _CACHE:
+        return rig_constants_of(source), [source.read(f, bev=bev) for f in frames]
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="jaxfish-constants") as pool:
+        pending = pool.submit(rig_constants_of, source)
+        try:
+            loaded = [source.read(f, bev=bev) for f in frames]
+        except Exception:
+            pending.result()  # the constants' own error first
+            raise
+        return pending.result(), loaded
 
 
 def _write_sample(source, out: Path, truth: SampleTruth, options: BuildOptions, record: dict[str, str]) -> dict[str, Any]:
