@@ -293,7 +293,8 @@ def _constants_and_frames(source, frames: list[int], bev: bool) -> tuple[RigCons
     as if they were built first."""
     if source.constants_key() in _CACHE:
         return rig_constants_of(source), [source.read(f, bev=bev) for f in frames]
-    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="jaxfish-constants") as pool:
+    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="jaxfish-constants")
+    try:
         pending = pool.submit(rig_constants_of, source)
         try:
             loaded = [source.read(f, bev=bev) for f in frames]
@@ -301,6 +302,8 @@ def _constants_and_frames(source, frames: list[int], bev: bool) -> tuple[RigCons
             pending.result()  # the constants' own error first
             raise
         return pending.result(), loaded
+    finally:  # an interrupt does not wait for the constants
+        pool.shutdown(wait=False)
 
 
 def _write_sample(source, out: Path, truth: SampleTruth, options: BuildOptions, record: dict[str, str]) -> dict[str, Any]:
