@@ -1,7 +1,6 @@
 """The embedded street scene: a procedural CARLA-style world ray-cast in JAX, its sensors, and the
 exact fisheye oracle (see ``docs/scene.md`` and ``docs/capture_layout.md``)."""
 
-from ._caster import CULL_CANDIDATES as CULL_CANDIDATES
 from ._caster import DEFAULT_BLOCK as DEFAULT_BLOCK
 from ._caster import DEFAULT_CHUNK as DEFAULT_CHUNK
 from ._caster import FAR_M as FAR_M

@@ -74,23 +74,8 @@ def ray_box_distance(
     """Entry distance of rays into axis-aligned boxes centred at the origin (slab method), in the
     box frame; ``inf`` when missed or when the box is behind (or around) the origin. ``direction``
     need not be normalised (the distance is in units of its length)."""
-    tiny = jnp.asarray(1e-12, direction.dtype)
-    d = jnp.where(jnp.abs(direction) < tiny, jnp.where(direction < 0, -tiny, tiny), direction)
-    inv = 1.0 / d
-    t1 = (-half_extent - origin) * inv
-    t2 = (half_extent - origin) * inv
-    t_near = jnp.max(jnp.minimum(t1, t2), axis=-1)
-    t_far = jnp.min(jnp.maximum(t1, t2), axis=-1)
-    hit = (t_near <= t_far) & (t_near > _T_MIN)
-    return jnp.where(hit, t_near, jnp.inf)
-
-
-def _sphere_entry(ox, oy, oz, dx, dy, dz, r):
-    b = ox * dx + oy * dy + oz * dz
-    c = ox * ox + oy * oy + oz * oz - r * r
-    disc = b * b - c
-    t = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
-    return jnp.where((disc >= 0) & (t > _T_MIN), t, jnp.inf)
+    o, d, h = (tuple(x[..., i] for i in range(3)) for x in (origin, direction, half_extent))
+    return _box_entry(*o, *d, *h)
 
 
 def ray_capsule_distance(
@@ -101,18 +86,56 @@ def ray_capsule_distance(
     to ``(0, 0, half_length)`` (capsule frame), ``inf`` when missed. The entry into the union of the
     side cylinder and the two end spheres is the smallest entry of the three; rays parallel to the
     axis (top views) only meet the spheres."""
-    ox, oy, oz = origin[..., 0], origin[..., 1], origin[..., 2]
-    dx, dy, dz = direction[..., 0], direction[..., 1], direction[..., 2]
+    o, d = (tuple(x[..., i] for i in range(3)) for x in (origin, direction))
+    return _capsule_entry(*o, *d, half_length, radius)
+
+
+def _slab(o, d, h):
+    tiny = 1e-12
+    d = jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d)
+    inv = 1.0 / d
+    t1 = (-h - o) * inv
+    t2 = (h - o) * inv
+    return jnp.minimum(t1, t2), jnp.maximum(t1, t2)
+
+
+def _box_entry(ox, oy, oz, dx, dy, dz, hx, hy, hz):
+    """Slab entry distance into the box ``|x| <= hx, |y| <= hy, |z| <= hz`` of rays given by their
+    components in the box frame (any broadcastable shapes); ``inf`` when missed or behind."""
+    ax, bx = _slab(ox, dx, hx)
+    ay, by = _slab(oy, dy, hy)
+    az, bz = _slab(oz, dz, hz)
+    t_near = jnp.maximum(jnp.maximum(ax, ay), az)
+    t_far = jnp.minimum(jnp.minimum(bx, by), bz)
+    return jnp.where((t_near <= t_far) & (t_near > _T_MIN), t_near, jnp.inf)
+
+
+def _sphere_entry(ox, oy, oz, dx, dy, dz, r):
+    """Entry distance of unit rays into the sphere of radius ``r`` at the origin. The discriminant
+    is ``r² - |o - (o·d) d|²`` (the squared distance of the ray's closest approach), not
+    ``(o·d)² - |o|² + r²``, whose cancellation grows with the distance of the sphere."""
+    b = ox * dx + oy * dy + oz * dz
+    px, py, pz = ox - b * dx, oy - b * dy, oz - b * dz
+    disc = r * r - (px * px + py * py + pz * pz)
+    t = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
+    return jnp.where((disc >= 0) & (t > _T_MIN), t, jnp.inf)
+
+
+def _capsule_entry(ox, oy, oz, dx, dy, dz, half_length, r):
+    """Entry distance of unit rays (components in the capsule frame, any broadcastable shapes) into
+    the upright capsule of segment ``z in [-half_length, half_length]`` and radius ``r``. The side
+    cylinder's discriminant is ``a r² - (o × d)_z²`` (``a = dx² + dy²``), the same as
+    ``b² - a (ox² + oy² - r²)`` by Lagrange's identity without its cancellation: a thin pole far
+    away keeps its silhouette in float32."""
     a = dx * dx + dy * dy
     b = ox * dx + oy * dy
-    c = ox * ox + oy * oy - radius * radius
-    disc = b * b - a * c
+    cross = ox * dy - oy * dx
+    disc = a * (r * r) - cross * cross
     ok = (a > 1e-12) & (disc >= 0)
     t_cyl = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(ok, a, 1.0)
-    z = oz + t_cyl * dz
-    t_cyl = jnp.where(ok & (t_cyl > _T_MIN) & (jnp.abs(z) <= half_length), t_cyl, jnp.inf)
-    t_top = _sphere_entry(ox, oy, oz - half_length, dx, dy, dz, radius)
-    t_bot = _sphere_entry(ox, oy, oz + half_length, dx, dy, dz, radius)
+    t_cyl = jnp.where(ok & (t_cyl > _T_MIN) & (jnp.abs(oz + t_cyl * dz) <= half_length), t_cyl, jnp.inf)
+    t_top = _sphere_entry(ox, oy, oz - half_length, dx, dy, dz, r)
+    t_bot = _sphere_entry(ox, oy, oz + half_length, dx, dy, dz, r)
     return jnp.minimum(t_cyl, jnp.minimum(t_top, t_bot))
 
 
@@ -217,76 +240,37 @@ def _from_local(v, c, s):
     return jnp.stack([x, y, v[..., 2]], axis=-1)
 
 
-def _slab(o, d, h):
-    tiny = 1e-12
-    d = jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d)
-    inv = 1.0 / d
-    t1 = (-h - o) * inv
-    t2 = (h - o) * inv
-    return jnp.minimum(t1, t2), jnp.maximum(t1, t2)
-
-
-def _box_t(o, d, center, cos, sin, h, active):
-    """Entry distances ``(B,)`` of **one** ray ``o, d (3,)`` into ``B`` boxes (vmapped over rays);
-    per component, no minor-axis stacking (it vectorises)."""
-    rx, ry, rz = o[0] - center[:, 0], o[1] - center[:, 1], o[2] - center[:, 2]
-    ox, oy = cos * rx + sin * ry, -sin * rx + cos * ry
-    dx, dy = cos * d[0] + sin * d[1], -sin * d[0] + cos * d[1]
-    ax, bx = _slab(ox, dx, h[:, 0])
-    ay, by = _slab(oy, dy, h[:, 1])
-    az, bz = _slab(rz, jnp.broadcast_to(d[2], rz.shape), h[:, 2])
-    t_near = jnp.maximum(jnp.maximum(ax, ay), az)
-    t_far = jnp.minimum(jnp.minimum(bx, by), bz)
-    ok = (t_near <= t_far) & (t_near > _T_MIN) & active
-    return jnp.where(ok, t_near, jnp.inf)
-
-
-def _capsule_t(o, d, center, hl, r, active):
-    """Entry distances ``(K,)`` of **one** unit ray into ``K`` upright capsules (vmapped over rays;
-    the capsules' yaw does not matter)."""
-    ox, oy, oz = o[0] - center[:, 0], o[1] - center[:, 1], o[2] - center[:, 2]
-    dx, dy, dz = d[0], d[1], d[2]
-    a = dx * dx + dy * dy
-    b = ox * dx + oy * dy
-    c = ox * ox + oy * oy - r * r
-    disc = b * b - a * c
-    ok = (a > 1e-12) & (disc >= 0)
-    t_cyl = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.where(ok, a, 1.0)
-    t_cyl = jnp.where(ok & (t_cyl > _T_MIN) & (jnp.abs(oz + t_cyl * dz) <= hl), t_cyl, jnp.inf)
-    # end spheres: b' = b + (oz -/+ hl) dz, c' = |oc|^2 - r^2
-    t_top = _sphere_entry2(b + (oz - hl) * dz, c + (oz - hl) * (oz - hl))
-    t_bot = _sphere_entry2(b + (oz + hl) * dz, c + (oz + hl) * (oz + hl))
-    t = jnp.minimum(t_cyl, jnp.minimum(t_top, t_bot))
-    return jnp.where(active, t, jnp.inf)
-
-
-def _sphere_entry2(b, c):
-    disc = b * b - c
-    t = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
-    return jnp.where((disc >= 0) & (t > _T_MIN), t, jnp.inf)
-
-
-CULL_CANDIDATES = 32
-"""Primitives of each kind tested per chunk after culling (when more survive the cull, the chunk
-tests all of them: culling never changes a result)."""
-
-
-def _nearest(scene: Scene, posed: _Posed, o, d, box_idx, cap_idx):
-    """Nearest hit among the ground and the given primitives: ``(t, global index)`` with index 0
-    the ground, ``1..B`` boxes, ``B+1..`` capsules."""
+def _nearest(scene: Scene, posed: _Posed, o, d, box_idx, n_boxes, cap_idx, n_capsules):
+    """Nearest hit of the rays ``o, d (C, 3)`` among the ground, the first ``n_boxes`` boxes of
+    ``box_idx`` and the first ``n_capsules`` capsules of ``cap_idx`` (indices in increasing order):
+    ``(t, global index)``, index 0 the ground, ``1..B`` boxes, ``B+1..`` capsules, the lowest index
+    among equal distances. One loop over the primitives, each tested on the whole chunk's rays by
+    the same compiled body: a ray's result does not depend on which other primitives are tested."""
     n_box = scene.box_center.shape[0]
-    boxes = (posed.box_center[box_idx], posed.box_cos[box_idx], posed.box_sin[box_idx],
-             scene.box_half_extent[box_idx], scene.box_active[box_idx])
-    caps = (posed.cap_center[cap_idx], scene.capsule_half_length[cap_idx], scene.capsule_radius[cap_idx],
-            scene.capsule_active[cap_idx])
-    t_box = jax.vmap(_box_t, in_axes=(0, 0) + (None,) * 5)(o, d, *boxes)  # (C, B)
-    t_cap = jax.vmap(_capsule_t, in_axes=(0, 0) + (None,) * 4)(o, d, *caps)  # (C, K)
-    t_gnd = ray_ground_distance(o, d)
-    t_all = jnp.concatenate([t_gnd[:, None], t_box, t_cap], axis=1)
-    k = jnp.argmin(t_all, axis=1)
-    t = jnp.min(t_all, axis=1)
-    glob = jnp.concatenate([jnp.zeros(1, jnp.int32), 1 + box_idx.astype(jnp.int32), 1 + n_box + cap_idx.astype(jnp.int32)])
-    return t, glob[k]
+    ox, oy, oz = o[:, 0], o[:, 1], o[:, 2]
+    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+
+    def box(i, carry):
+        t, idx = carry
+        j = box_idx[i]
+        c, s, h = posed.box_cos[j], posed.box_sin[j], scene.box_half_extent[j]
+        rx, ry, rz = ox - posed.box_center[j, 0], oy - posed.box_center[j, 1], oz - posed.box_center[j, 2]
+        tj = _box_entry(c * rx + s * ry, -s * rx + c * ry, rz, c * dx + s * dy, -s * dx + c * dy, dz, h[0], h[1], h[2])
+        closer = tj < t
+        return jnp.where(closer, tj, t), jnp.where(closer, 1 + j.astype(jnp.int32), idx)
+
+    def capsule(i, carry):
+        t, idx = carry
+        j = cap_idx[i]
+        centre = posed.cap_center[j]
+        tj = _capsule_entry(ox - centre[0], oy - centre[1], oz - centre[2], dx, dy, dz,
+                            scene.capsule_half_length[j], scene.capsule_radius[j])
+        closer = tj < t
+        return jnp.where(closer, tj, t), jnp.where(closer, 1 + n_box + j.astype(jnp.int32), idx)
+
+    t = ray_ground_distance(o, d)
+    carry = jax.lax.fori_loop(0, n_boxes, box, (t, jnp.zeros(t.shape, jnp.int32)))
+    return jax.lax.fori_loop(0, n_capsules, capsule, carry)
 
 
 def _candidates(o, d, center, radius, active):
@@ -312,22 +296,12 @@ def _candidates(o, d, center, radius, active):
 
 def _cast_chunk(scene: Scene, posed: _Posed, o: Float[Array, "C 3"], d: Float[Array, "C 3"]):
     n_box = scene.box_center.shape[0]
-    n_cap = scene.capsule_center.shape[0]
-    mb, mk = min(CULL_CANDIDATES, n_box), min(CULL_CANDIDATES, n_cap)
     box_radius = jnp.sqrt(jnp.sum(scene.box_half_extent**2, axis=-1))
     cand_b = _candidates(o, d, posed.box_center, box_radius, scene.box_active)
     cand_k = _candidates(o, d, posed.cap_center, scene.capsule_half_length + scene.capsule_radius, scene.capsule_active)
-    fits = (jnp.sum(cand_b) <= mb) & (jnp.sum(cand_k) <= mk)
-
-    def culled(_):
-        box_idx = jnp.argsort(~cand_b, stable=True)[:mb]
-        cap_idx = jnp.argsort(~cand_k, stable=True)[:mk]
-        return _nearest(scene, posed, o, d, box_idx, cap_idx)
-
-    def full(_):
-        return _nearest(scene, posed, o, d, jnp.arange(n_box), jnp.arange(n_cap))
-
-    t, idx = jax.lax.cond(fits, culled, full, None)
+    # only the survivors of the cull, in index order (stable sort: candidates first)
+    t, idx = _nearest(scene, posed, o, d, jnp.argsort(~cand_b, stable=True), jnp.sum(cand_b),
+                      jnp.argsort(~cand_k, stable=True), jnp.sum(cand_k))
     hit = t < FAR_DEPTH_M
     t_safe = jnp.where(hit, t, FAR_DEPTH_M).astype(o.dtype)
     p = o + t_safe[:, None] * d
@@ -381,27 +355,32 @@ def _cast_chunk(scene: Scene, posed: _Posed, o: Float[Array, "C 3"], d: Float[Ar
 
 
 DEFAULT_BLOCK = 65536
-"""Rays per jitted call of the caster: every render is cut into blocks of this many rays (renders of
-at most one chunk use a one-chunk block), so all cameras share two compilations."""
+"""Rays per jitted call of the caster: every cast is cut into blocks of this many rays (the last one
+padded), so every render, of any size, shares one compilation."""
 
 
 @eqx.filter_jit
-def _cast_block(scene: Scene, o, d, time, chunk_size: int):
-    n_chunks = o.shape[0] // chunk_size
+def _cast_block(scene: Scene, o, d, time, n_rays, chunk_size: int):
+    """The first ``n_rays`` rays of the block ``o, d (N, 3)``, chunk by chunk; the chunks past them
+    are not cast (their outputs stay zero)."""
     posed = _pose_primitives(scene, time)
-    out = jax.lax.map(
-        lambda od: _cast_chunk(scene, posed, od[0], od[1]),
-        (o.reshape(n_chunks, chunk_size, 3), d.reshape(n_chunks, chunk_size, 3)),
-    )
-    return jax.tree_util.tree_map(lambda x: x.reshape((n_chunks * chunk_size,) + x.shape[2:]), out)
+    shapes = jax.eval_shape(lambda: _cast_chunk(scene, posed, o[:chunk_size], d[:chunk_size]))
+    out = jax.tree_util.tree_map(lambda s: jnp.zeros((o.shape[0],) + s.shape[1:], s.dtype), shapes)
+
+    def chunk(i, out):
+        start = i * chunk_size
+        res = _cast_chunk(scene, posed, jax.lax.dynamic_slice_in_dim(o, start, chunk_size),
+                          jax.lax.dynamic_slice_in_dim(d, start, chunk_size))
+        return jax.tree_util.tree_map(lambda buf, r: jax.lax.dynamic_update_slice_in_dim(buf, r, start, 0), out, res)
+
+    return jax.lax.fori_loop(0, (n_rays + chunk_size - 1) // chunk_size, chunk, out)
 
 
 def _cast_flat(scene: Scene, origins, directions, time, chunk_size: int, block_size: int = DEFAULT_BLOCK):
-    """Cast ``(N, 3)`` rays block by block (fixed shapes: few compilations, bounded memory)."""
+    """Cast ``(N, 3)`` rays block by block (one shape: one compilation, bounded memory)."""
     n = origins.shape[0]
     chunk = max(1, int(chunk_size))
-    block = max(chunk, (int(block_size) // chunk) * chunk)
-    size = chunk if n <= chunk else block  # two shapes only: one small, one large compilation
+    size = max(chunk, (int(block_size) // chunk) * chunk)
     time = jnp.asarray(time, _F32)
     parts = []
     for start in range(0, n, size):
@@ -409,9 +388,9 @@ def _cast_flat(scene: Scene, origins, directions, time, chunk_size: int, block_s
         d = directions[start : start + size]
         m = o.shape[0]
         if m < size:
-            o = jnp.concatenate([o, jnp.broadcast_to(o[:1], (size - m, 3))])
-            d = jnp.concatenate([d, jnp.broadcast_to(d[:1], (size - m, 3))])
-        out = _cast_block(scene, o, d, time, chunk)
+            o = jnp.concatenate([o, jnp.broadcast_to(o[m - 1 :], (size - m, 3))])  # the last ray: a tight cull
+            d = jnp.concatenate([d, jnp.broadcast_to(d[m - 1 :], (size - m, 3))])
+        out = _cast_block(scene, o, d, time, jnp.int32(m), chunk)
         parts.append(jax.tree_util.tree_map(lambda x, m=m: x[:m], out) if m < size else out)
     if len(parts) == 1:
         return parts[0]
