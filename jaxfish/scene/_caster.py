@@ -360,23 +360,28 @@ padded), so every render, of any size, shares one compilation."""
 
 
 @eqx.filter_jit
-def _cast_block(scene: Scene, o, d, time, n_rays, chunk_size: int):
+def _cast_block(scene: Scene, o, d, time, n_rays, chunk_size: int, fields: tuple[str, ...] | None = None):
     """The first ``n_rays`` rays of the block ``o, d (N, 3)``, chunk by chunk; the chunks past them
-    are not cast (their outputs stay zero)."""
+    are not cast (their outputs stay zero). ``fields``: the outputs to compute (static), None for all."""
     posed = _pose_primitives(scene, time)
-    shapes = jax.eval_shape(lambda: _cast_chunk(scene, posed, o[:chunk_size], d[:chunk_size]))
+
+    def cast(oc, dc):
+        out = _cast_chunk(scene, posed, oc, dc)
+        return out if fields is None else {k: out[k] for k in fields}
+
+    shapes = jax.eval_shape(lambda: cast(o[:chunk_size], d[:chunk_size]))
     out = jax.tree_util.tree_map(lambda s: jnp.zeros((o.shape[0],) + s.shape[1:], s.dtype), shapes)
 
     def chunk(i, out):
         start = i * chunk_size
-        res = _cast_chunk(scene, posed, jax.lax.dynamic_slice_in_dim(o, start, chunk_size),
-                          jax.lax.dynamic_slice_in_dim(d, start, chunk_size))
+        res = cast(jax.lax.dynamic_slice_in_dim(o, start, chunk_size), jax.lax.dynamic_slice_in_dim(d, start, chunk_size))
         return jax.tree_util.tree_map(lambda buf, r: jax.lax.dynamic_update_slice_in_dim(buf, r, start, 0), out, res)
 
     return jax.lax.fori_loop(0, (n_rays + chunk_size - 1) // chunk_size, chunk, out)
 
 
-def _cast_flat(scene: Scene, origins, directions, time, chunk_size: int, block_size: int = DEFAULT_BLOCK):
+def _cast_flat(scene: Scene, origins, directions, time, chunk_size: int, block_size: int = DEFAULT_BLOCK,
+               fields: tuple[str, ...] | None = None):
     """Cast ``(N, 3)`` rays block by block (one shape: one compilation, bounded memory)."""
     n = origins.shape[0]
     chunk = max(1, int(chunk_size))
@@ -390,7 +395,7 @@ def _cast_flat(scene: Scene, origins, directions, time, chunk_size: int, block_s
         if m < size:
             o = jnp.concatenate([o, jnp.broadcast_to(o[m - 1 :], (size - m, 3))])  # the last ray: a tight cull
             d = jnp.concatenate([d, jnp.broadcast_to(d[m - 1 :], (size - m, 3))])
-        out = _cast_block(scene, o, d, time, jnp.int32(m), chunk)
+        out = _cast_block(scene, o, d, time, jnp.int32(m), chunk, fields)
         parts.append(jax.tree_util.tree_map(lambda x, m=m: x[:m], out) if m < size else out)
     if len(parts) == 1:
         return parts[0]
@@ -462,6 +467,28 @@ def render_pixels(
     else:
         out = _cast_flat(scene, o, d, time, chunk_size)
     return _finish(out, valid, pose)
+
+
+def render_rgb(
+    scene: Scene,
+    camera: AbstractCamera,
+    camera_to_world: Pose,
+    *,
+    time=1.0,
+    chunk_size: int = DEFAULT_CHUNK,
+) -> Float[Array, "H W 3"]:
+    """`render`'s `RenderBuffers.rgb` alone (the same values), computing nothing else: for renders
+    whose colour is all that is kept (the DVS sub-frames)."""
+    uv = camera.pixel_grid(_F32)
+    o, d, valid, _ = _camera_rays(camera, camera_to_world, uv)
+    order, inverse = _tile_order(uv.shape[0], uv.shape[1], chunk_size)
+    out = _cast_flat(scene, _take(o, order), _take(d, order), time, chunk_size, fields=("rgb",))
+    return _finish_rgb(_take(out["rgb"], inverse), valid)
+
+
+@jax.jit
+def _finish_rgb(rgb, valid):
+    return jnp.where(valid[..., None], rgb.reshape(valid.shape + (3,)), 0.0)
 
 
 @jax.jit

@@ -20,7 +20,7 @@ from ..calibration import Calibration, mounting_rotation
 from ..cameras import AbstractCamera, Orthographic, Pinhole
 from ..reprojection import FIVE_FACES, CubeRig
 from ..transforms import CARLA_TO_ISO, Pose
-from ._caster import DEFAULT_CHUNK, RenderBuffers, cast_rays, render
+from ._caster import DEFAULT_CHUNK, RenderBuffers, cast_rays, render, render_rgb
 from ._generator import ego_body_boxes
 from ._model import EGO_OBJECT, StreetFrame
 
@@ -273,7 +273,8 @@ def simulate_camera(frame: StreetFrame, calib: Calibration, config: CaptureConfi
                 (before if i == 0 else curr)[name] = img
                 rgb = img.rgb
             else:
-                rgb = to_uint8(render_camera(frame, rig.face, pose, time=i / k, chunk_size=config.chunk_size).rgb)
+                world = frame.scene.camera_to_world(pose, i / k)
+                rgb = to_uint8(render_rgb(frame.scene, rig.face, world, time=i / k, chunk_size=config.chunk_size))
             logs.append(log_intensity(rgb, config.dvs_log_eps))
         dvs[name] = dvs_events(np.stack(logs), times_ns, config.dvs_threshold)
     return CameraCapture(before, curr, dvs)

@@ -215,3 +215,20 @@ def test_tile_order_is_a_permutation_by_tiles_with_its_inverse_kept():
     tile = (r // 4) * math.ceil(w / 4) + c // 4
     assert np.all(np.diff(tile) >= 0)  # tile after tile
     assert _tile_order(h, w, chunk)[0] is order and not order.flags.writeable  # one pair per size, kept
+
+
+def test_colour_only_render_equals_the_full_render(street, small_rig):
+    """`render_rgb` (the DVS sub-frames' render) gives `render`'s colours bit for bit, for a fisheye
+    and for a cube face."""
+    from jaxfish.reprojection import CubeRig
+    from jaxfish.scene._caster import render, render_rgb
+
+    calib = small_rig["FV"]
+    rig = CubeRig(64, dtype=jnp.float32)
+    for camera, mount in ((calib.camera, calib.camera_to_vehicle), (rig.face, calib.camera_to_vehicle @ rig.face_pose("left"))):
+        for time in (0.25, 1.0):
+            pose = street.scene.camera_to_world(mount, time)
+            full = render(street.scene, camera, pose, time=time)
+            rgb = np.asarray(render_rgb(street.scene, camera, pose, time=time))
+            assert np.asarray(full.hit).any() and not np.asarray(full.hit).all()
+            np.testing.assert_array_equal(rgb, np.asarray(full.rgb))
