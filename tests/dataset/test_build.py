@@ -442,3 +442,66 @@ def test_batched_frames_build_equals_the_serial_build_and_isolates_failures(smal
     assert "rgb_curr.png" in report.failed["00001"] and "RV" in report.failed["00001"]
     with pytest.raises(DatasetError, match="batch_frames"):
         BuildOptions(batch_frames=0)
+
+
+class _SlowRig:
+    """A source whose first frames are read while `rig_constants_of` builds its constants."""
+
+    face_size, faces, where = 8, ("front",), "<fake source>"
+
+    def __init__(self, read):
+        self._read = read
+
+    def constants_key(self):
+        return ("fake source", id(self))
+
+    def has_bev(self):
+        return False
+
+    def rig(self):
+        return {}
+
+    def read(self, frame, bev=True):
+        return self._read(frame)
+
+
+def test_the_first_frames_are_read_while_the_constants_build(monkeypatch):
+    import threading
+
+    from jaxfish.dataset import _build
+
+    building, read_done = threading.Event(), threading.Event()
+
+    def constants(*args, **kwargs):
+        building.set()
+        assert read_done.wait(30), "the frames were not read while the constants were built"
+        return "constants"
+
+    def read(frame):
+        assert building.wait(30), "the constants were not being built during the read"
+        read_done.set()
+        return frame
+
+    monkeypatch.setattr(_build, "rig_constants", constants)
+    source = _SlowRig(read)
+    try:
+        assert _build._constants_and_frames(source, [3, 4], True) == ("constants", [3, 4])
+        assert _build._constants_and_frames(source, [5], True) == ("constants", [5])  # built once: kept
+    finally:
+        _build._CACHE.pop(source.constants_key(), None)
+
+
+def test_a_constants_error_is_raised_before_a_read_error(monkeypatch):
+    from jaxfish.dataset import DatasetError, _build
+
+    def constants(*args, **kwargs):
+        raise DatasetError("<fake source>: field 'intrinsic': no ray")
+
+    def read(frame):
+        raise ValueError("frame unreadable")
+
+    monkeypatch.setattr(_build, "rig_constants", constants)
+    source = _SlowRig(read)
+    with pytest.raises(DatasetError, match="intrinsic"):
+        _build._constants_and_frames(source, [0], True)
+    assert source.constants_key() not in _build._CACHE
