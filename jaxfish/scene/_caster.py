@@ -382,24 +382,36 @@ def _cast_block(scene: Scene, o, d, time, n_rays, chunk_size: int, fields: tuple
 
 def _cast_flat(scene: Scene, origins, directions, time, chunk_size: int, block_size: int = DEFAULT_BLOCK,
                fields: tuple[str, ...] | None = None):
-    """Cast ``(N, 3)`` rays block by block (one shape: one compilation, bounded memory)."""
+    """Cast ``(N, 3)`` rays block by block (one shape: one compilation, bounded memory). The
+    padding, the blocks' slicing and their joining are one program each per ray count."""
     n = origins.shape[0]
     chunk = max(1, int(chunk_size))
     size = max(chunk, (int(block_size) // chunk) * chunk)
     time = jnp.asarray(time, _F32)
-    parts = []
-    for start in range(0, n, size):
-        o = origins[start : start + size]
-        d = directions[start : start + size]
-        m = o.shape[0]
-        if m < size:
-            o = jnp.concatenate([o, jnp.broadcast_to(o[m - 1 :], (size - m, 3))])  # the last ray: a tight cull
-            d = jnp.concatenate([d, jnp.broadcast_to(d[m - 1 :], (size - m, 3))])
-        out = _cast_block(scene, o, d, time, jnp.int32(m), chunk, fields)
-        parts.append(jax.tree_util.tree_map(lambda x, m=m: x[:m], out) if m < size else out)
-    if len(parts) == 1:
-        return parts[0]
-    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
+    blocks = max(1, -(-n // size))
+    o, d = _padded(origins, directions, blocks * size)
+    parts = [_cast_block(scene, *_block(o, d, jnp.int32(i * size), size), time, jnp.int32(min(size, n - i * size)),
+                         chunk, fields) for i in range(blocks)]
+    return _joined(parts, n)
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _padded(o, d, length: int):
+    """``o, d`` padded to ``length`` rays with copies of their last ray (a tight cull)."""
+    pad = length - o.shape[0]
+    fill = (lambda x: x[-1:]) if o.shape[0] else (lambda x: jnp.zeros((1, 3), x.dtype))  # no ray: any
+    return tuple(x if pad == 0 else jnp.concatenate([x, jnp.broadcast_to(fill(x), (pad, 3))]) for x in (o, d))
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _block(o, d, start, size: int):
+    return jax.lax.dynamic_slice_in_dim(o, start, size), jax.lax.dynamic_slice_in_dim(d, start, size)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _joined(parts, n: int):
+    """The blocks' outputs as one array per field, the first ``n`` rays."""
+    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *parts)
 
 
 def cast_rays(
@@ -462,8 +474,7 @@ def render_pixels(
     o, d, valid, pose = _camera_rays(camera, camera_to_world, uv)
     if uv.ndim == 3:  # an image: cast square tiles together (coherent chunks cull well)
         order, inverse = _tile_order(uv.shape[0], uv.shape[1], chunk_size)
-        out = _cast_flat(scene, _take(o, order), _take(d, order), time, chunk_size)
-        out = jax.tree_util.tree_map(lambda x: _take(x, inverse), out)
+        out = _take(_cast_flat(scene, *_take((o, d), order), time, chunk_size), inverse)
     else:
         out = _cast_flat(scene, o, d, time, chunk_size)
     return _finish(out, valid, pose)
@@ -482,7 +493,7 @@ def render_rgb(
     uv = camera.pixel_grid(_F32)
     o, d, valid, _ = _camera_rays(camera, camera_to_world, uv)
     order, inverse = _tile_order(uv.shape[0], uv.shape[1], chunk_size)
-    out = _cast_flat(scene, _take(o, order), _take(d, order), time, chunk_size, fields=("rgb",))
+    out = _cast_flat(scene, *_take((o, d), order), time, chunk_size, fields=("rgb",))
     return _finish_rgb(_take(out["rgb"], inverse), valid)
 
 
@@ -492,8 +503,9 @@ def _finish_rgb(rgb, valid):
 
 
 @jax.jit
-def _take(x, index):
-    return x[index]
+def _take(tree, index):
+    """Every array of ``tree`` gathered along its first axis at ``index`` (one program)."""
+    return jax.tree_util.tree_map(lambda x: x[index], tree)
 
 
 @functools.lru_cache(maxsize=8)

@@ -232,3 +232,21 @@ def test_colour_only_render_equals_the_full_render(street, small_rig):
             rgb = np.asarray(render_rgb(street.scene, camera, pose, time=time))
             assert np.asarray(full.hit).any() and not np.asarray(full.hit).all()
             np.testing.assert_array_equal(rgb, np.asarray(full.rgb))
+
+
+def test_cast_rays_of_no_ray_and_of_several_blocks(street):
+    """No ray gives empty buffers; rays spanning several blocks (the last one partial) give the
+    rays cast one block at a time."""
+    from jaxfish.scene._caster import _cast_flat
+
+    empty = cast_rays(street.scene, np.zeros((0, 3), F), np.zeros((0, 3), F))
+    assert empty.range_m.shape == (0,) and empty.rgb.shape == (0, 3)
+    rng = np.random.default_rng(0)
+    o = np.tile(np.array([[0.0, 0.0, 1.6]], F), (700, 1)) + rng.normal(0, 0.1, (700, 3)).astype(F)
+    d = _unit(rng.normal(0, 1, (700, 3)) + [1.0, 0.0, 0.0])
+    whole = _cast_flat(street.scene, jnp.asarray(o), jnp.asarray(d), 1.0, 64, block_size=256)  # 3 blocks
+    for start in (0, 256, 512):
+        part = _cast_flat(street.scene, jnp.asarray(o[start:start + 256]), jnp.asarray(d[start:start + 256]), 1.0, 64,
+                          block_size=256)
+        for key, value in part.items():
+            np.testing.assert_array_equal(np.asarray(whole[key])[start:start + 256], np.asarray(value), err_msg=key)
