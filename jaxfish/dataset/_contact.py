@@ -14,6 +14,7 @@ fixed).
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 from typing import NamedTuple
@@ -103,19 +104,25 @@ def flow_wheel_tile(radius: int) -> tuple[np.ndarray, np.ndarray]:
     the pixel at offset ``(du, dv)`` from the centre has `jaxfish.flow_to_color`'s colour of the
     flow ``(du, dv) / radius`` with ``max_radius = 1`` (float32), i.e. of a flow in that image
     direction whose magnitude is that fraction of the image's largest."""
-    import functools
-
-    import jax
     import jax.numpy as jnp
-
-    from ..groundtruth import flow_to_color
 
     r = int(radius)
     off = np.arange(-r, r + 1, dtype=np.float32) / np.float32(max(r, 1))
     du, dv = np.meshgrid(off, off, indexing="xy")
     flow = jnp.asarray(np.stack([du, dv], axis=-1), jnp.float32)
-    rgb = np.asarray(jax.jit(functools.partial(flow_to_color, max_radius=1.0))(flow))  # one program, not op by op
+    rgb = np.asarray(_wheel_colors()(flow))
     return rgb, du * du + dv * dv <= 1.0
+
+
+@functools.cache
+def _wheel_colors():
+    """`jaxfish.flow_to_color` with ``max_radius = 1`` as one compiled program (kept: op by op it
+    compiles each operation on its own)."""
+    import jax
+
+    from ..groundtruth import flow_to_color
+
+    return jax.jit(functools.partial(flow_to_color, max_radius=1.0))
 
 
 def depth_scale_tile(width: int, height: int) -> np.ndarray:
