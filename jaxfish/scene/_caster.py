@@ -470,14 +470,21 @@ def render_pixels(
     """Render the pixels ``uv`` (any batch shape) of ``camera`` placed by ``camera_to_world``
     (camera frame -> CARLA world) at ``time`` (0 = t-1, 1 = t). Works for every jaxfish camera
     model, central or not (`AbstractCamera.ray_origins`)."""
+    return _finish(*_cast_pixels(scene, camera, camera_to_world, uv, time, chunk_size))
+
+
+def _cast_pixels(scene: Scene, camera: AbstractCamera, camera_to_world: Pose, uv, time, chunk_size: int,
+                 fields: tuple[str, ...] | None = None):
+    """The caster's outputs (``fields``, None for all) for the pixels ``uv``, flat in pixel order,
+    with the pixels' validity and the camera's float32 pose."""
     uv = jnp.asarray(uv, _F32)
     o, d, valid, pose = _camera_rays(camera, camera_to_world, uv)
     if uv.ndim == 3:  # an image: cast square tiles together (coherent chunks cull well)
         order, inverse = _tile_order(uv.shape[0], uv.shape[1], chunk_size)
-        out = _take(_cast_flat(scene, *_take((o, d), order), time, chunk_size), inverse)
+        out = _take(_cast_flat(scene, *_take((o, d), order), time, chunk_size, fields=fields), inverse)
     else:
-        out = _cast_flat(scene, o, d, time, chunk_size)
-    return _finish(out, valid, pose)
+        out = _cast_flat(scene, o, d, time, chunk_size, fields=fields)
+    return out, valid, pose
 
 
 def render_rgb(
@@ -490,11 +497,8 @@ def render_rgb(
 ) -> Float[Array, "H W 3"]:
     """`render`'s `RenderBuffers.rgb` alone (the same values), computing nothing else: for renders
     whose colour is all that is kept (the DVS sub-frames)."""
-    uv = camera.pixel_grid(_F32)
-    o, d, valid, _ = _camera_rays(camera, camera_to_world, uv)
-    order, inverse = _tile_order(uv.shape[0], uv.shape[1], chunk_size)
-    out = _cast_flat(scene, *_take((o, d), order), time, chunk_size, fields=("rgb",))
-    return _finish_rgb(_take(out["rgb"], inverse), valid)
+    out, valid, _ = _cast_pixels(scene, camera, camera_to_world, camera.pixel_grid(_F32), time, chunk_size, ("rgb",))
+    return _finish_rgb(out["rgb"], valid)
 
 
 @jax.jit
