@@ -15,9 +15,11 @@ BEV_CAMERA = "BEV"
 """Name of the top-view (bird's-eye view) camera in file names."""
 SAMPLE_DIGITS = 5
 """Digits of a sample id: sample ``k`` is the capture's frame ``k`` (``{k:05d}``)."""
-LAYOUT_VERSION = 3
+LAYOUT_VERSION = 4
 """Version of this layout (bumped on any change of folder, name, dtype or meaning; 2: depth EXR;
-3: flow masks, ``sensor_data``, lidar / semantic lidar / radar in the vehicle frame). Completion markers of another version do not count as complete: resuming rebuilds them."""
+3: flow masks, ``sensor_data``, lidar / semantic lidar / radar in the vehicle frame; 4: tonic
+events in int16 / int64 / int8 instead of four int64 columns). Completion markers of another
+version do not count as complete: resuming rebuilds them."""
 
 
 def sample_id(frame: int) -> str:
@@ -73,7 +75,7 @@ LAYOUT: tuple[dict[str, Any], ...] = (
     _e("events", "dvs_signals/raw_data/{sample}_{camera}.npy", "npy", "[x <u2, y <u2, t <i8, pol ?]", "(N,)",
        "t in nanoseconds (absolute simulation time)", "fisheye",
        "DVS events between t-1 and t on fisheye pixels, time order, CARLA's dtype"),
-    _e("events_tonic", "dvs_signals/tonic/{sample}_{camera}.npz", "npz", "[x <i8, y <i8, t <i8, p <i8]", "(N,)",
+    _e("events_tonic", "dvs_signals/tonic/{sample}_{camera}.npz", "npz", "[x <i2, y <i2, t <i8, p i1]", "(N,)",
        "t in microseconds", "fisheye",
        "tonic-compatible events ('events'), with 'time_unit' = 'us' and 'sensor_size' = (W, H, 2)", "jaxfish"),
     _e("events_color", "dvs_signals/color_coded/{sample}_{camera}.png", "png", "uint8", "(H, W, 3)", "-", "fisheye",

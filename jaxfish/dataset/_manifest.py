@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from .._constants import FAR_DEPTH_M
+from ..io._events import TONIC_EVENT_DTYPE
 from ._layout import BEV_CAMERA, DATASET_FILES, LAYOUT, LAYOUT_VERSION, sample_id
 from ._options import DONE_DIR, BuildOptions, DatasetError
 
@@ -126,7 +127,7 @@ def dataset_manifest(source, out_dir: str | os.PathLike, options: BuildOptions |
             "events": {"raw_data": {"dtype": "[('x', '<u2'), ('y', '<u2'), ('t', '<i8'), ('pol', '?')]",
                                     "time_unit": "ns", "time": "absolute simulation time, within [t-1, t]",
                                     "polarity": "True = brighter"},
-                       "tonic": {"dtype": "[('x', '<i8'), ('y', '<i8'), ('t', '<i8'), ('p', '<i8')]",
+                       "tonic": {"dtype": str(TONIC_EVENT_DTYPE),
                                  "time_unit": "us", "t": "t_ns // 1000"},
                        "mapping": "a face event goes to every fisheye pixel whose centre ray lands on its face pixel",
                        "color_coded": "blue = net positive, red = net negative polarity, white = none",

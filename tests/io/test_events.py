@@ -61,10 +61,36 @@ def test_tonic_file_is_the_npz_of_the_converted_events_chunk_by_chunk(tmp_path, 
     assert read_events_tonic(empty)[0].shape == (0,)
 
 
+def test_tonic_records_are_narrow_and_take_tonic_arithmetic():
+    ev = _events()
+    ton = carla_to_tonic(ev)
+    assert TONIC_EVENT_DTYPE.itemsize == 13 and [ton.dtype[k].kind for k in "xytp"] == ["i"] * 4
+    assert ton.dtype["x"].itemsize == ton.dtype["y"].itemsize == 2 and ton.dtype["p"].itemsize == 1
+    flipped = ton["p"] * np.int8(-1)  # tonic's polarity flip needs a signed polarity
+    assert set(flipped.tolist()) <= {0, -1} and (flipped == -1).sum() == ev["pol"].sum()
+
+
+def test_tonic_refuses_coordinates_int16_cannot_hold(tmp_path):
+    big = carla_events([0, 40000], [0, 1], [5, 6], [True, False])
+    with pytest.raises(ImageError, match="big.npz.*'x'.*0..32767"):
+        write_events_tonic(tmp_path / "big.npz", big, width=32768, height=2)
+    with pytest.raises(ImageError, match="wide.npz.*'sensor_size'"):
+        write_events_tonic(tmp_path / "wide.npz", big[:1], width=40000, height=2)
+    with pytest.raises(ImageError, match="carla_to_tonic.*'x'"):
+        carla_to_tonic(big)
+    assert not list(tmp_path.iterdir())
+    edge = carla_events([32767], [32767], [5], [True])
+    write_events_tonic(tmp_path / "edge.npz", edge, width=32768, height=32768)
+    assert read_events_tonic(tmp_path / "edge.npz")[0][["x", "y"]].tolist() == [(32767, 32767)]
+
+
 def test_tonic_conversion_of_other_field_types():
     ev = np.zeros(3, [("t", "<f8"), ("x", "<i4"), ("y", "<u2"), ("pol", "<i1")])  # CARLA's fields, other types
     ev["t"], ev["x"], ev["y"], ev["pol"] = [1999.9, 2000.0, 123456.7], [1, 2, 3], [4, 5, 6], [1, 0, 1]
     ton = carla_to_tonic(ev)
+    ev["x"][0] = -1
+    with pytest.raises(ImageError, match="'x'"):
+        carla_to_tonic(ev)
     assert ton.dtype == TONIC_EVENT_DTYPE
     assert ton["t"].tolist() == [1, 2, 123] and ton["p"].tolist() == [1, 0, 1] and ton["x"].tolist() == [1, 2, 3]
 
