@@ -3,7 +3,10 @@
 
 from __future__ import annotations
 
+import threading
+import weakref
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -82,15 +85,79 @@ def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.nd
     return _by_time(flat, np.asarray(t, np.int64)[ev_idx], np.asarray(pol, bool)[ev_idx], int(width))
 
 
+class _HostMap(NamedTuple):
+    """An `EventMap` on the host for `camera_events`: ``first`` ``(F * S * S,)`` int32, per face
+    pixel its only fisheye target, -1 when it feeds none, or ``-2 - j`` when it feeds several:
+    then row ``j`` of ``many`` holds its targets (``many_count[j]`` of them, -1 after)."""
+
+    first: np.ndarray
+    many: np.ndarray
+    many_count: np.ndarray
+
+
+def _host_map(targets: np.ndarray, fanout: np.ndarray) -> _HostMap:
+    count = np.minimum(np.asarray(fanout), targets.shape[1])
+    first = targets[:, 0].astype(np.int32)
+    first[count == 0] = -1
+    several = np.flatnonzero(count > 1)
+    first[several] = -2 - np.arange(several.size, dtype=np.int32)
+    return _HostMap(first, np.ascontiguousarray(targets[several]), count[several])
+
+
+_HOST_MAPS: dict[int, tuple[weakref.ref, _HostMap]] = {}
+_HOST_MAPS_LOCK = threading.Lock()
+
+
+def _host_map_of(event_map: EventMap) -> _HostMap:
+    """``event_map``'s `_HostMap`, built once and kept while its ``targets`` array lives."""
+    targets = event_map.targets
+    key = id(targets)
+    with _HOST_MAPS_LOCK:
+        kept = _HOST_MAPS.get(key)
+        if kept is not None and kept[0]() is targets:
+            return kept[1]
+    table = _host_map(np.asarray(targets), np.asarray(event_map.fanout))
+    with _HOST_MAPS_LOCK:
+        _HOST_MAPS[key] = (weakref.ref(targets), table)
+    weakref.finalize(targets, _forget_host_map, key, weakref.ref(targets))
+    return table
+
+
+def _forget_host_map(key: int, ref: weakref.ref) -> None:
+    with _HOST_MAPS_LOCK:
+        kept = _HOST_MAPS.get(key)
+        if kept is not None and kept[0] is ref:
+            del _HOST_MAPS[key]
+
+
+def _face_copies(table: _HostMap, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The events at face pixels ``src`` (indices into ``table.first``) once per fisheye pixel they
+    feed, a pixel's targets in slot order: ``(event index, fisheye flat index)``."""
+    target = table.first[src]
+    index = np.flatnonzero(target != -1)
+    flat = target[index]
+    several = np.flatnonzero(flat < -1)  # the few events whose pixel feeds more than one
+    if several.size:
+        rows = -2 - flat[several]
+        flat[several] = table.many[rows, 0]
+        extra = table.many_count[rows] - 1
+        at = np.repeat(several + 1, extra)  # inserted after the event's first copy, in slot order
+        slot = np.arange(at.size) - np.repeat(np.cumsum(extra) - extra, extra) + 1
+        flat = np.insert(flat, at, table.many[np.repeat(rows, extra), slot])
+        index = np.insert(index, at, index[np.repeat(several, extra)])
+    return index, flat
+
+
 def camera_events(events: Sequence[np.ndarray], event_map: EventMap) -> np.ndarray:
     """A camera's face events (one CARLA-dtype array per face, in the event map's face order)
     mapped to its fisheye through ``event_map``: CARLA-dtype events, t in ns, time order; the same
     events as `map_face_events` of the concatenated faces. Each face is mapped on its own: only
-    the events that feed a fisheye pixel are gathered and sorted."""
-    tg = np.asarray(event_map.targets)
-    fan = _fan_table(tg, np.asarray(event_map.fanout))
+    the events that feed a fisheye pixel are gathered and sorted, through a host copy of the map
+    (each face pixel's first target, its other targets apart) made once per ``event_map``."""
+    table = _host_map_of(event_map)
+    n = table.first.shape[0]
     s = int(event_map.face_size)
-    index = np.int32 if tg.shape[0] < 2**31 else np.int64
+    index = np.int32 if n < 2**31 else np.int64
     flats, times, pols = [], [], []
     for i, ev in enumerate(events):
         if ev.shape[0] == 0:
@@ -99,15 +166,16 @@ def camera_events(events: Sequence[np.ndarray], event_map: EventMap) -> np.ndarr
         src = y.astype(index)
         src *= s
         src += x
-        inb = None
-        signed = x.dtype.kind == "i" or y.dtype.kind == "i"  # CARLA's are unsigned: no minimum to check
-        if int(x.max()) >= s or int(y.max()) >= s or (signed and (int(x.min()) < 0 or int(y.min()) < 0)):
-            inb = (x >= 0) & (x < s) & (y >= 0) & (y < s)
         src += i * s * s
-        if (i + 1) * s * s > tg.shape[0]:  # a face beyond the map's (in-face pixels stay below this bound)
-            inb = (src < tg.shape[0]) if inb is None else inb & (src < tg.shape[0])
-        keep, counts = _feeding(fan, src, inb)
-        ev_idx, flat = _copies(tg, src, keep, counts)
+        signed = x.dtype.kind == "i" or y.dtype.kind == "i"  # CARLA's are unsigned: no minimum to check
+        if int(x.max()) >= s or int(y.max()) >= s or (signed and (int(x.min()) < 0 or int(y.min()) < 0)) \
+                or (i + 1) * s * s > n:  # outside the face, or a face beyond the map's
+            inb = (x >= 0) & (x < s) & (y >= 0) & (y < s) & (src < n)
+            kept = np.flatnonzero(inb)
+            ev_idx, flat = _face_copies(table, src[kept])
+            ev_idx = kept[ev_idx]
+        else:
+            ev_idx, flat = _face_copies(table, src)
         flats.append(flat)
         times.append(ev["t"][ev_idx].astype(np.int64, copy=False))
         pols.append(ev["pol"][ev_idx].astype(bool, copy=False))

@@ -69,6 +69,27 @@ def test_camera_events_face_by_face_equal_the_mapping_of_all_faces():
     assert camera_events([np.zeros(0, DVS_EVENT_DTYPE)] * 3, emap).shape == (0,)
 
 
+def test_camera_events_keep_one_host_map_per_event_map_while_it_lives():
+    import gc
+
+    import jaxfish.pipeline._events as events_module
+
+    targets = np.asarray([[3, 5], [-1, -1], [4, -1], [0, 1]], np.int32)  # 1 face of 2 x 2 pixels
+    emap = EventMap(targets=targets, fanout=np.asarray([2, 0, 1, 1], np.int32), width=3, height=2, face_size=2,
+                    num_faces=1, max_fanout=2)
+    ev = np.zeros(4, DVS_EVENT_DTYPE)
+    ev["x"], ev["y"], ev["t"] = [0, 1, 0, 1], [0, 0, 1, 1], [1, 2, 3, 3]
+    got = camera_events([ev], emap)
+    assert [(int(a), int(b), int(c)) for a, b, c in zip(got["t"], got["x"], got["y"], strict=True)] == \
+        [(1, 0, 1), (1, 2, 1), (3, 1, 1), (3, 0, 0)]  # pixel 0 feeds two, pixel 1 none
+    table = events_module._host_map_of(emap)
+    assert events_module._host_map_of(emap) is table and table.first.tolist() == [-2, -1, 4, 0]
+    key = id(emap.targets)
+    del emap, targets
+    gc.collect()
+    assert key not in events_module._HOST_MAPS
+
+
 def test_events_color_is_the_net_polarity_per_pixel():
     ev = np.zeros(6, DVS_EVENT_DTYPE)
     ev["x"], ev["y"] = [0, 0, 1, 2, 2, 7], [0, 0, 0, 1, 1, 0]  # the last one outside a 3 x 2 image
