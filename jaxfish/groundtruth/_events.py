@@ -41,16 +41,20 @@ class EventMap(eqx.Module):
 
 
 def _inverse(nearest: Array, valid: Array, n_src: int, m: int):
-    flat = nearest.reshape(-1)
-    ok = valid.reshape(-1)
-    key = jnp.where(ok, flat, n_src)
-    order = jnp.argsort(key, stable=True).astype(jnp.int32)
+    """Per face pixel its first ``m`` fisheye pixels in index order (the order of a stable sort of
+    the fisheye pixels by face pixel), -1 after, and its fan-out. Slot ``j`` is a scatter-min of
+    the pixels not taken by slots ``< j``: ``m`` passes over the fisheye (XLA's CPU sort of the
+    fisheye's keys would take several times longer)."""
+    key = jnp.where(valid.reshape(-1), nearest.reshape(-1), n_src)
+    index = jnp.arange(key.shape[0], dtype=jnp.int32)
+    none = jnp.iinfo(jnp.int32).max
+    slots, rest = [], key
+    for _ in range(m):
+        first = jnp.full(n_src + 1, none, jnp.int32).at[rest].min(index)
+        slots.append(jnp.where(first[:n_src] == none, -1, first[:n_src]))
+        rest = jnp.where(first[rest] == index, n_src, rest)  # a taken pixel leaves for the spare bin
     fanout = jnp.zeros(n_src + 1, jnp.int32).at[key].add(1)[:n_src]
-    start = jnp.cumsum(fanout) - fanout
-    slot = jnp.arange(m, dtype=jnp.int32)
-    pos = jnp.clip(start[:, None] + slot[None], 0, order.shape[0] - 1)
-    targets = jnp.where(slot[None] < fanout[:, None], order[pos], -1)
-    return targets, fanout
+    return jnp.stack(slots, axis=1), fanout
 
 
 def event_map_from_lut(lut: Lut, *, max_fanout: int | None = None) -> EventMap:

@@ -44,6 +44,49 @@ def test_events_land_where_the_fisheye_ray_meets_the_face_pixel(sample, event_ma
         assert (int(out["face"][j]), fx[j], fy[j]) in src
 
 
+def _inverse_reference(nearest, valid, n_src, m):
+    """Per face pixel its first ``m`` fisheye pixels in index order: a stable sort, by NumPy."""
+    key = np.where(np.asarray(valid).reshape(-1), np.asarray(nearest).reshape(-1), n_src)
+    order = np.argsort(key, kind="stable")
+    fanout = np.bincount(key, minlength=n_src + 1)[:n_src]
+    start = np.cumsum(fanout) - fanout
+    targets = np.full((n_src, m), -1, np.int64)
+    for j in range(m):
+        has = fanout > j
+        targets[has, j] = order[start[has] + j]
+    return targets, fanout
+
+
+@pytest.mark.parametrize("max_fanout", [None, 1, 4])
+def test_event_map_is_the_stable_inverse_of_the_lut(sample, max_fanout):
+    from jaxfish.reprojection import centre_sample
+
+    lut = sample.lut
+    k = centre_sample(lut.supersample)
+    f, s_h, s_w = lut.source_shape
+    emap = gt.event_map_from_lut(lut, max_fanout=max_fanout)
+    want, fanout = _inverse_reference(lut.nearest_index[..., k], lut.valid[..., k], f * s_h * s_w,
+                                      emap.max_fanout)
+    assert emap.max_fanout == (int(fanout.max()) if max_fanout is None else max_fanout)
+    np.testing.assert_array_equal(np.asarray(emap.targets), want)
+    np.testing.assert_array_equal(np.asarray(emap.fanout), np.minimum(fanout, emap.max_fanout))
+
+
+def test_event_map_inverse_with_fanouts_up_to_four():
+    from jaxfish.groundtruth._events import _inverse
+
+    rng = np.random.default_rng(3)
+    n_src, shape = 50, (9, 11)
+    nearest = rng.integers(0, n_src, shape).astype(np.int32)  # several pixels per face pixel, some none
+    valid = rng.random(shape) < 0.8
+    want, fanout = _inverse_reference(nearest, valid, n_src, 6)
+    assert fanout.max() >= 4
+    for m in (1, 3, 6):
+        targets, fan = jax.jit(_inverse, static_argnums=(2, 3))(nearest, valid, n_src, m)
+        np.testing.assert_array_equal(np.asarray(targets), want[:, :m])
+        np.testing.assert_array_equal(np.asarray(fan), fanout)
+
+
 def test_counts_follow_the_fanout_rule_and_time_order_is_kept(sample, event_map):
     rng = np.random.default_rng(1)
     s = sample.face_size
