@@ -13,6 +13,8 @@ pixel order).
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -40,12 +42,21 @@ class EventMap(eqx.Module):
     max_fanout: int = eqx.field(static=True)
 
 
-def _inverse(nearest: Array, valid: Array, n_src: int, m: int):
+@functools.partial(jax.jit, static_argnums=1)
+def _source_counts(lut: Lut, n_src: int) -> tuple[Int[Array, " N"], Int[Array, " FSS"]]:
+    """Per fisheye pixel its face pixel at the LUT's centre sample (``n_src`` where it has none),
+    and per face pixel how many fisheye pixels it feeds."""
+    k = centre_sample(lut.supersample)
+    key = jnp.where(lut.valid[..., k], lut.nearest_index[..., k], n_src).reshape(-1)
+    return key, jnp.zeros(n_src + 1, jnp.int32).at[key].add(1)[:n_src]
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3))
+def _inverse(key: Int[Array, " N"], count: Int[Array, " FSS"], n_src: int, m: int):
     """Per face pixel its first ``m`` fisheye pixels in index order (the order of a stable sort of
-    the fisheye pixels by face pixel), -1 after, and its fan-out. Slot ``j`` is a scatter-min of
-    the pixels not taken by slots ``< j``: ``m`` passes over the fisheye (XLA's CPU sort of the
-    fisheye's keys would take several times longer)."""
-    key = jnp.where(valid.reshape(-1), nearest.reshape(-1), n_src)
+    the fisheye pixels by face pixel ``key``), -1 after, and its fan-out ``count`` capped at ``m``.
+    Slot ``j`` is a scatter-min of the pixels not taken by slots ``< j``: ``m`` passes over the
+    fisheye (XLA's CPU sort of the keys would take several times longer)."""
     index = jnp.arange(key.shape[0], dtype=jnp.int32)
     none = jnp.iinfo(jnp.int32).max
     slots, rest = [], key
@@ -53,26 +64,22 @@ def _inverse(nearest: Array, valid: Array, n_src: int, m: int):
         first = jnp.full(n_src + 1, none, jnp.int32).at[rest].min(index)
         slots.append(jnp.where(first[:n_src] == none, -1, first[:n_src]))
         rest = jnp.where(first[rest] == index, n_src, rest)  # a taken pixel leaves for the spare bin
-    fanout = jnp.zeros(n_src + 1, jnp.int32).at[key].add(1)[:n_src]
-    return jnp.stack(slots, axis=1), fanout
+    return jnp.stack(slots, axis=1), jnp.minimum(count, m)
 
 
 def event_map_from_lut(lut: Lut, *, max_fanout: int | None = None) -> EventMap:
     """Build the `EventMap` of a cube -> fisheye `Lut` (its centre sample). ``max_fanout`` (static)
     defaults to the LUT's true maximum (computed on the host; pass it explicitly under `jax.jit`).
     Face pixels feeding more than ``max_fanout`` fisheye pixels keep only the first ``max_fanout``."""
-    k = centre_sample(lut.supersample)
-    nearest = lut.nearest_index[..., k]
-    valid = lut.valid[..., k]
     f, s_h, s_w = lut.source_shape
     n_src = f * s_h * s_w
+    key, count = _source_counts(lut, n_src)
     if max_fanout is None:
-        counts = jnp.zeros(n_src + 1, jnp.int32).at[jnp.where(valid, nearest, n_src).reshape(-1)].add(1)[:n_src]
-        max_fanout = max(int(jnp.max(counts)), 1)
-    targets, fanout = jax.jit(_inverse, static_argnums=(2, 3))(nearest, valid, n_src, int(max_fanout))
+        max_fanout = max(int(jnp.max(count)), 1)
+    targets, fanout = _inverse(key, count, n_src, int(max_fanout))
     h, w = lut.target_shape
-    return EventMap(targets=targets, fanout=jnp.minimum(fanout, int(max_fanout)), width=int(w), height=int(h),
-                    face_size=int(s_w), num_faces=int(f), max_fanout=int(max_fanout))
+    return EventMap(targets=targets, fanout=fanout, width=int(w), height=int(h), face_size=int(s_w), num_faces=int(f),
+                    max_fanout=int(max_fanout))
 
 
 class FisheyeEvents(eqx.Module):

@@ -14,7 +14,7 @@ from jaxtyping import Array, Bool, Float
 from ..calibration import Calibration
 from ..cameras import AbstractCamera, Orthographic
 from ..groundtruth import EventMap, event_map_from_lut, pixel_rays
-from ..reprojection import CubeRig, Lut, build_lut
+from ..reprojection import CubeRig, Lut, compiled_build_lut
 from ..transforms import Pose
 
 
@@ -85,8 +85,8 @@ def camera_constants(name: str, calibration: Calibration, *, faces: Sequence[str
     ``face_size`` pixels. Raises `EmptyCameraError` when no pixel of the camera sees a face."""
     calib = calibration.astype(jnp.float32)
     cam = calib.camera.astype(jnp.float32)
-    lut = build_lut(CubeRig(int(face_size), faces=tuple(faces), dtype=jnp.float32), cam)
-    if not bool(jnp.any(lut.valid)):
+    lut = compiled_build_lut(CubeRig(int(face_size), faces=tuple(faces), dtype=jnp.float32), cam)
+    if not np.any(np.asarray(lut.valid)):
         raise EmptyCameraError(name)
     return CameraConstants(name, cam, calib.camera_to_vehicle, lut, compiled_pixel_rays(cam), event_map_from_lut(lut))
 

@@ -142,7 +142,8 @@ class SampleTruth(eqx.Module):
 @functools.cache
 def _jitted() -> dict:
     return {"colorize": jax.jit(gt.colorize_labels), "instance_colors": jax.jit(gt.instance_colors),
-            "z_depth": jax.jit(gt.range_to_z_depth),
+            "z_depth": jax.jit(gt.range_to_z_depth), "height_rgb": jax.jit(jbev.colorize_height),
+            "occupancy": jax.jit(jbev.occupancy_map, static_argnames="min_height_m"),
             "flow_color": jax.jit(gt.flow_to_color, static_argnames="max_radius")}
 
 
@@ -282,10 +283,11 @@ def bev_truth(frame: Frame, constants: RigConstants, options: GroundTruthOptions
     else:
         height = np.asarray(jbev.height_map(k.camera, k.camera_to_vehicle, jnp.asarray(view.images.depth_m, jnp.float32)))
     thr = float(options.occupancy_min_height_m)
-    occupancy = np.asarray(jbev.occupancy_map(height, min_height_m=thr))
+    jit = _jitted()
+    occupancy = np.asarray(jit["occupancy"](height, min_height_m=thr))
     return BevTruth(view=_camera_truth("BEV", k.camera, k.rays, truth, None, options.backward_flow), camera=k.camera,
                     camera_to_vehicle=k.camera_to_vehicle, height_m=height, occupancy=occupancy,
-                    occupancy_min_height_m=thr, height_rgb=np.asarray(jbev.colorize_height(height)),
+                    occupancy_min_height_m=thr, height_rgb=np.asarray(jit["height_rgb"](height)),
                     pixel_to_vehicle_xy=np.asarray(jbev.bev_pixel_to_vehicle(k.camera, k.camera_to_vehicle), np.float64),
                     box_class_id=np.asarray(m.boxes.class_id))
 
