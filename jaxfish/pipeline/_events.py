@@ -14,45 +14,6 @@ from .._constants import DVS_EVENT_DTYPE
 from ..groundtruth import EventMap
 
 
-def _fan_table(targets: np.ndarray, fanout: np.ndarray | None) -> np.ndarray:
-    """Per face pixel, how many fisheye pixels it feeds, in the narrowest unsigned dtype that holds
-    ``targets``' width (a small table: its random reads per event stay in the cache)."""
-    fan = np.sum(targets >= 0, axis=1) if fanout is None else np.asarray(fanout)
-    return fan.astype(np.uint8 if targets.shape[1] < 256 else np.int64, copy=False)
-
-
-def _feeding(fan: np.ndarray, src: np.ndarray, inb: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """The indices of the events (source pixels ``src``, in-bounds mask ``inb`` or None for all)
-    that feed at least one fisheye pixel, and how many each feeds."""
-    if inb is not None:
-        src = np.where(inb, src, 0)
-    counts = fan[src]
-    if inb is not None:
-        counts[~inb] = 0
-    keep = np.flatnonzero(counts)
-    return keep, counts[keep]
-
-
-def _copies(targets: np.ndarray, src: np.ndarray, keep: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each kept event once per fisheye pixel it feeds (slot order): ``(event index, fisheye flat index)``."""
-    rows = targets[src[keep]]  # (K, M): a pixel's targets first, -1 after
-    if rows.shape[1] == 1 or not counts.size or int(counts.max()) == 1:
-        return keep, rows[:, 0]
-    # Event k's copies fill slots starts[k] .. starts[k] + counts[k] - 1: every event's first
-    # target, then the second targets of the (few) events that have one, and so on.
-    ends = np.cumsum(counts, dtype=np.int64)
-    starts = ends - counts
-    flat, index = np.empty(int(ends[-1]), rows.dtype), np.empty(int(ends[-1]), keep.dtype)
-    flat[starts], index[starts] = rows[:, 0], keep
-    more = np.flatnonzero(counts > 1)
-    for j in range(1, rows.shape[1]):
-        more = more[counts[more] > j]
-        if not more.size:
-            break
-        flat[starts[more] + j], index[starts[more] + j] = rows[more, j], keep[more]
-    return index, flat
-
-
 def _by_time(flat: np.ndarray, t: np.ndarray, pol: np.ndarray, width: int) -> np.ndarray:
     """CARLA-dtype events of fisheye flat indices ``flat``, stably sorted by ``t``."""
     order = np.argsort(t, kind="stable")
@@ -63,30 +24,8 @@ def _by_time(flat: np.ndarray, t: np.ndarray, pol: np.ndarray, width: int) -> np
     return out
 
 
-def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.ndarray, x: np.ndarray, y: np.ndarray,
-                    t: np.ndarray, pol: np.ndarray, fanout: np.ndarray | None = None) -> np.ndarray:
-    """NumPy twin of `jaxfish.groundtruth.map_events` + `compact_events` (same rule, same order:
-    stable sort by time, ties in face-event then fisheye-pixel order) for an `EventMap`'s
-    ``targets`` (and ``fanout``, derived from ``targets`` when omitted).
-
-    Args: ``targets`` ``(F * S * S, M)`` fisheye flat indices (-1 padding, a pixel's targets
-    first); ``width`` of the fisheye; ``face_size`` ``S``; per face event its ``face`` index,
-    ``x``, ``y`` (face pixels), ``t`` (ns) and ``pol``. Events outside the faces feed no pixel.
-    Returns the fisheye events in CARLA's DVS dtype (t unchanged, ns)."""
-    tg = np.asarray(targets)
-    fan = _fan_table(tg, fanout)
-    s = int(face_size)
-    f, xi, yi = (np.asarray(a, np.int64) for a in (face, x, y))
-    inb = (f >= 0) & (xi >= 0) & (xi < s) & (yi >= 0) & (yi < s)
-    src = (f * s + yi) * s + xi
-    inb &= src < tg.shape[0]
-    keep, counts = _feeding(fan, src, inb)
-    ev_idx, flat = _copies(tg, src, keep, counts)
-    return _by_time(flat, np.asarray(t, np.int64)[ev_idx], np.asarray(pol, bool)[ev_idx], int(width))
-
-
 class _HostMap(NamedTuple):
-    """An `EventMap` on the host for `camera_events`: ``first`` ``(F * S * S,)`` int32, per face
+    """An `EventMap` on the host for `camera_events` and `map_face_events`: ``first`` ``(F * S * S,)`` int32, per face
     pixel its only fisheye target, -1 when it feeds none, or ``-2 - j`` when it feeds several:
     then row ``j`` of ``many`` holds its targets (``many_count[j]`` of them, -1 after)."""
 
@@ -96,6 +35,8 @@ class _HostMap(NamedTuple):
 
 
 def _host_map(targets: np.ndarray, fanout: np.ndarray) -> _HostMap:
+    """The `_HostMap` of an event map's ``targets`` ``(F * S * S, M)`` (a pixel's targets first, -1
+    after) and ``fanout`` (at most ``M`` of them are used)."""
     count = np.minimum(np.asarray(fanout), targets.shape[1])
     first = targets[:, 0].astype(np.int32)
     first[count == 0] = -1
@@ -146,6 +87,29 @@ def _face_copies(table: _HostMap, src: np.ndarray) -> tuple[np.ndarray, np.ndarr
         flat = np.insert(flat, at, table.many[np.repeat(rows, extra), slot])
         index = np.insert(index, at, index[np.repeat(several, extra)])
     return index, flat
+
+
+def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.ndarray, x: np.ndarray, y: np.ndarray,
+                    t: np.ndarray, pol: np.ndarray, fanout: np.ndarray | None = None) -> np.ndarray:
+    """NumPy twin of `jaxfish.groundtruth.map_events` + `compact_events` (same rule, same order:
+    stable sort by time, ties in face-event then fisheye-pixel order) for an `EventMap`'s
+    ``targets`` (and ``fanout``, derived from ``targets`` when omitted).
+
+    Args: ``targets`` ``(F * S * S, M)`` fisheye flat indices (-1 padding, a pixel's targets
+    first); ``width`` of the fisheye; ``face_size`` ``S``; per face event its ``face`` index,
+    ``x``, ``y`` (face pixels), ``t`` (ns) and ``pol``. Events outside the faces feed no pixel.
+    Returns the fisheye events in CARLA's DVS dtype (t unchanged, ns)."""
+    tg = np.asarray(targets)
+    table = _host_map(tg, np.sum(tg >= 0, axis=1) if fanout is None else fanout)
+    s = int(face_size)
+    f, xi, yi = (np.asarray(a, np.int64) for a in (face, x, y))
+    inb = (f >= 0) & (xi >= 0) & (xi < s) & (yi >= 0) & (yi < s)
+    src = (f * s + yi) * s + xi
+    inb &= src < tg.shape[0]
+    kept = np.flatnonzero(inb)
+    ev_idx, flat = _face_copies(table, src[kept])
+    ev_idx = kept[ev_idx]
+    return _by_time(flat, np.asarray(t, np.int64)[ev_idx], np.asarray(pol, bool)[ev_idx], int(width))
 
 
 def camera_events(events: Sequence[np.ndarray], event_map: EventMap) -> np.ndarray:

@@ -451,7 +451,7 @@ def _finish(out, valid, pose: Pose):
     depth = jnp.sum((out["point_world"] - pose.translation) * axis, axis=-1)
     hit = out["hit"] & valid
     out["semantic"] = jnp.where(valid, out["semantic"], TAGS["unlabeled"])
-    out["rgb"] = jnp.where(valid[..., None], out["rgb"], 0.0)
+    out["rgb"] = _finish_rgb(out["rgb"], valid)
     out["object_index"] = jnp.where(valid, out["object_index"], -1)
     out["actor_id"] = jnp.where(valid, out["actor_id"], 0)
     out["hit"] = hit
@@ -503,6 +503,7 @@ def render_rgb(
 
 @jax.jit
 def _finish_rgb(rgb, valid):
+    """The rendered colour of the pixels ``valid`` (shaped like it), black elsewhere."""
     return jnp.where(valid[..., None], rgb.reshape(valid.shape + (3,)), 0.0)
 
 
