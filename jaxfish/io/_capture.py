@@ -585,7 +585,7 @@ class CaptureReader:
     def faces_stacks(self, frame: int, views: Sequence[tuple[str, str]], *,
                      actor_ids: bool = True) -> dict[tuple[str, str], CameraImages]:
         """`faces_stack` of every ``(camera, instant)`` in ``views``, all faces decoded in one pool
-        of threads (PNG decoding releases the GIL). With ``capture.json``'s ``face_size`` the RGB,
+        of `decode_threads` threads (PNG decoding releases the GIL). With ``capture.json``'s ``face_size`` the RGB,
         depth and semantic images are decoded straight into the stacks (read-only with
         ``reuse_decoded=True``, as `face`'s arrays); without it each face is decoded alone, then
         stacked."""
@@ -600,7 +600,7 @@ class CaptureReader:
             return self.face(frame, camera, self.faces[i], instant, actor_ids=actor_ids,
                              out=None if out is None else tuple(a[i] for a in out))
 
-        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, _usable_cores()))) as pool:
+        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, decode_threads()))) as pool:
             imgs = dict(zip(jobs, pool.map(read, jobs), strict=True))
         result = {}
         for v in views:
@@ -701,6 +701,19 @@ class CaptureReader:
     def gnss(self, frame: int) -> dict[str, Any]:
         """GNSS fix at t."""
         return self._read_json(self._frame(frame) / "gnss.json")
+
+
+DECODE_THREADS = 4
+"""The most threads `CaptureReader.faces_stacks` decodes a frame's faces with. A face's decode is
+mostly inflating and unfiltering into fresh memory: beyond a few threads they contend for memory
+bandwidth and the GIL, and more threads add CPU time without shortening the decode
+(docs/performance.md, "On a GPU")."""
+
+
+def decode_threads() -> int:
+    """Threads `CaptureReader.faces_stacks` decodes with: `DECODE_THREADS`, or fewer where this
+    process may run on fewer cores (its CPU affinity: a pinned dask worker's share)."""
+    return min(DECODE_THREADS, _usable_cores())
 
 
 def _usable_cores() -> int:

@@ -254,3 +254,33 @@ def test_face_size_is_bounded(tmp_path, capture):
     (copy / "capture.json").write_text(json.dumps(header))
     with pytest.raises(CaptureError, match=r"capture\.json: field 'face_size': expected at most 65536 pixels"):
         CaptureReader(copy)
+
+
+@pytest.mark.parametrize("cores, expected", [(1, 1), (2, 2), (16, 4)])
+def test_faces_are_decoded_by_at_most_decode_threads_threads(capture, monkeypatch, cores, expected):
+    """The decode pool is as large as the process's cores allow, at most `DECODE_THREADS`; the
+    stacks are the same whatever its size."""
+    import concurrent.futures
+
+    from jaxfish.io import _capture
+
+    assert _capture.DECODE_THREADS == 4
+    sizes = []
+    real = concurrent.futures.ThreadPoolExecutor
+
+    class Spy(real):
+        def __init__(self, max_workers=None, *args, **kwargs):
+            sizes.append(max_workers)
+            super().__init__(max_workers, *args, **kwargs)
+
+    monkeypatch.setattr(_capture, "_usable_cores", lambda: cores)
+    monkeypatch.setattr(concurrent.futures, "ThreadPoolExecutor", Spy)
+    reader = CaptureReader(capture[0])
+    views = [("FV", "curr"), ("MVL", "prev")]
+    stacks = reader.faces_stacks(0, views)
+    assert sizes == [expected]
+    monkeypatch.setattr(concurrent.futures, "ThreadPoolExecutor", real)
+    for view in views:
+        want = CaptureReader(capture[0]).faces_stacks(0, [view])[view]
+        for field in ("rgb", "depth_m", "semantic", "actor_id"):
+            np.testing.assert_array_equal(getattr(stacks[view], field), getattr(want, field))
