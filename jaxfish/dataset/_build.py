@@ -40,7 +40,16 @@ from ._options import BuildOptions as BuildOptions
 from ._options import BuildReport as BuildReport
 from ._options import DatasetError as DatasetError
 from ._options import sample_span
-from ._runtime import BUILD_PID_ENV, CORE_SHARES_ENV, core_shares, encode_shares, tune_allocator, use_compile_cache
+from ._runtime import (
+    BUILD_PID_ENV,
+    CORE_SHARES_ENV,
+    accelerator_sharing_env,
+    core_shares,
+    encode_shares,
+    share_accelerator,
+    tune_allocator,
+    use_compile_cache,
+)
 from ._shards import SHARD_FORMAT, SHARD_RULE, SHARDS_DIR, Shard, as_shard, remove_shard_records, source_origin
 from ._sink import LayoutSink, write_sensor_files
 from ._sources import CaptureSource, FrameSource, as_source
@@ -524,7 +533,10 @@ def build_dataset(
     requested ones again. Samples already complete are skipped. ``scheduler`` (a
     dask.distributed address) or ``workers`` (start a ``LocalCluster`` of that many workers,
     process workers unless ``processes=False``) run the samples in parallel; the output bytes are
-    those of a serial run. ``progress(sample, error)`` is called after each sample (``error`` None
+    those of a serial run. Process workers and this process share a GPU: they allocate its memory
+    as they need it (`jaxfish.dataset._runtime.share_accelerator`, unless the environment sets
+    ``XLA_PYTHON_CLIENT_PREALLOCATE``; in this process only if JAX has not started before the
+    call). ``progress(sample, error)`` is called after each sample (``error`` None
     on success). A failing sample (missing or corrupt capture file) is recorded in the report with
     its reason and does not stop the others. Finally writes ``dataset.json`` (listing the complete
     samples, the capture's fingerprint and the options), ``calibration_data`` and
@@ -552,6 +564,8 @@ def build_dataset(
         if bad:
             raise DatasetError(f"frames must be integer frame numbers, got {bad[0]!r}")
     start = time.perf_counter()
+    if workers is not None and processes and scheduler is None:
+        share_accelerator()  # before the rig below starts JAX: the workers share this process's GPU
     source = as_source(source)  # a capture with a missing / malformed header stops the build here
     source.rig()  # so do the calibrations and (for the BEV) sensors.json, before anything is written
     if options.bev and source.has_bev():
@@ -867,6 +881,8 @@ def local_cluster(workers: int, *, processes: bool = True):
     Process workers end with the process that calls this (its nannies run in it), however it ends,
     ``kill -9`` included, and ignore SIGINT and SIGTERM (`jaxfish.dataset._runtime.dask_setup`, a
     worker preload added to ``distributed.worker.preload``): stopping them is that process's job.
+    On a GPU they allocate its memory as they need it (`jaxfish.dataset._runtime.accelerator_sharing_env`),
+    so that several of them and that process can share it.
     With more than one, each process worker pins itself, as it starts and before JAX sizes its
     thread pools, to its own share of this process's cores (`jaxfish.dataset.core_shares`, worker
     ``i`` the ``i``-th share, as `jaxfish.dataset.share_cores` would pin them later)."""
@@ -881,7 +897,8 @@ def local_cluster(workers: int, *, processes: bool = True):
                if k != "MALLOC_TRIM_THRESHOLD_"}
     kwargs: dict[str, Any] = {}
     if processes:  # the nannies run in this process: their workers end with it (`_runtime.dask_setup`)
-        kwargs["env"] = {BUILD_PID_ENV: str(os.getpid())}  # set in the worker only, over any inherited value
+        # Set in the worker only, over any inherited value; the workers share this process's GPU.
+        kwargs["env"] = {BUILD_PID_ENV: str(os.getpid()), **accelerator_sharing_env()}
         cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
         if cores and workers > 1:  # each worker pins itself to its share as it starts
             kwargs["env"][CORE_SHARES_ENV] = encode_shares(core_shares(workers, cores))

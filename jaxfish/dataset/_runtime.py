@@ -93,6 +93,35 @@ def share_cores(client) -> dict[str, tuple[int, ...]]:
     return dict(zip(addresses, shares, strict=True))
 
 
+PREALLOCATE_ENV = "XLA_PYTHON_CLIENT_PREALLOCATE"
+"""JAX's environment variable for GPU memory: unset or true, a process takes 75 % of the GPU's memory
+when its GPU backend starts; ``false``, it allocates as it needs."""
+
+
+def accelerator_sharing_env() -> dict[str, str]:
+    """The environment `local_cluster`'s process workers get so that they, and the process that
+    started them, can share one GPU: ``{PREALLOCATE_ENV: "false"}`` (each allocates GPU memory as it
+    needs it; with JAX's default the first process to start would take most of it and the others
+    could not start their backends), or nothing where this process's environment sets
+    `PREALLOCATE_ENV` itself (the workers inherit that choice). No effect without a GPU."""
+    return {} if PREALLOCATE_ENV in os.environ else {PREALLOCATE_ENV: "false"}
+
+
+def share_accelerator() -> bool:
+    """Apply `accelerator_sharing_env` to this process, for a build on local process workers.
+    Only possible while JAX has not started its backends here (the variable is read then); a
+    value already in the environment is kept. Returns whether this process now allocates GPU
+    memory as it needs it (always true of processes without a GPU, which have nothing to share)."""
+    if PREALLOCATE_ENV in os.environ:
+        return os.environ[PREALLOCATE_ENV].strip().lower() in ("false", "0")
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        return not any(d.platform == "gpu" for d in xla_bridge.devices())
+    os.environ[PREALLOCATE_ENV] = "false"
+    return True
+
+
 CORE_SHARES_ENV = "JAXFISH_CORE_SHARES"
 """Environment variable of `local_cluster`'s workers: every worker's share of the cores
 (``"0,1;2,3"``: worker ``i`` takes the ``i``-th group), taken by `dask_setup` at the worker's start."""

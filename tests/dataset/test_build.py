@@ -299,18 +299,19 @@ def test_consecutive_frames_reuse_decoded_images_with_the_same_bytes(small_captu
 
 
 def _worker_environ():
-    return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")}
+    return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "XLA_PYTHON_CLIENT_PREALLOCATE")}
 
 
 def _affinity() -> tuple[int, ...]:
     return tuple(sorted(os.sched_getaffinity(0)))
 
 
-def test_local_cluster_workers_keep_glibcs_dynamic_mmap_threshold_and_get_their_own_cores():
+def test_local_cluster_workers_keep_glibcs_dynamic_mmap_threshold_and_get_their_own_cores(monkeypatch):
     from distributed import Client
 
     from jaxfish.dataset import DatasetError, core_shares, local_cluster, share_cores
 
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
     with pytest.raises(DatasetError, match="at least 1"):
         local_cluster(0)
     with local_cluster(2) as cluster, Client(cluster) as client:
@@ -324,6 +325,31 @@ def test_local_cluster_workers_keep_glibcs_dynamic_mmap_threshold_and_get_their_
     for env in envs:
         assert env["MALLOC_TRIM_THRESHOLD_"] is None  # dask's nannies would set 65536
         assert env["OMP_NUM_THREADS"] == "1"  # the rest of dask's worker environment is kept
+        assert env["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"  # the workers can share one GPU
+
+
+def test_processes_sharing_a_gpu_allocate_as_they_need_unless_the_environment_says(monkeypatch):
+    """`accelerator_sharing_env` (the workers') and `share_accelerator` (the building process's)
+    keep a value the environment sets; unset, the workers get ``false``, and a process whose JAX
+    has started keeps its backends (here the CPU's: nothing to share, nothing set)."""
+    import jax
+
+    from jaxfish.dataset._runtime import PREALLOCATE_ENV, accelerator_sharing_env, share_accelerator
+
+    assert PREALLOCATE_ENV == "XLA_PYTHON_CLIENT_PREALLOCATE"
+    jax.devices()  # JAX has started in this process
+    monkeypatch.setenv(PREALLOCATE_ENV, "true")
+    assert accelerator_sharing_env() == {} and share_accelerator() is False
+    monkeypatch.setenv(PREALLOCATE_ENV, "false")
+    assert accelerator_sharing_env() == {} and share_accelerator() is True
+    monkeypatch.delenv(PREALLOCATE_ENV)
+    assert accelerator_sharing_env() == {PREALLOCATE_ENV: "false"}
+    assert share_accelerator() is (jax.default_backend() != "gpu")
+    assert PREALLOCATE_ENV not in os.environ  # too late to set it here
+    env = {k: v for k, v in os.environ.items() if k != PREALLOCATE_ENV}
+    fresh = ("import os; from jaxfish.dataset._runtime import share_accelerator as s; "
+             "assert s() is True and os.environ['XLA_PYTHON_CLIENT_PREALLOCATE'] == 'false'")
+    subprocess.run([sys.executable, "-c", fresh], env=env, check=True, timeout=300)  # before JAX starts: set
 
 
 def test_core_shares_split_the_cores_disjointly_or_round_robin():
