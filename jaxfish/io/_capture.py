@@ -585,10 +585,10 @@ class CaptureReader:
     def faces_stacks(self, frame: int, views: Sequence[tuple[str, str]], *,
                      actor_ids: bool = True) -> dict[tuple[str, str], CameraImages]:
         """`faces_stack` of every ``(camera, instant)`` in ``views``, all faces decoded in one pool
-        of `decode_threads` threads (PNG decoding releases the GIL). With ``capture.json``'s ``face_size`` the RGB,
-        depth and semantic images are decoded straight into the stacks (read-only with
-        ``reuse_decoded=True``, as `face`'s arrays); without it each face is decoded alone, then
-        stacked."""
+        of `decode_threads` threads (PNG decoding releases the GIL). With ``capture.json``'s
+        ``face_size`` the RGB, depth and semantic images are decoded straight into the stacks
+        (read-only with ``reuse_decoded=True``, as `face`'s arrays); without it each face is decoded
+        alone, then stacked."""
         size = self.meta.get("face_size")
         n = len(self.faces)
         stacks = {v: None if size is None else face_stacks(n, int(size)) for v in views}
