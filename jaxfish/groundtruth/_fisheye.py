@@ -184,7 +184,12 @@ def ground_truth_from_images(
                                                        carla_version, reach)
     statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates,
                            surface_samples, k_host, n_host, m_host)
-    return _jit_from_plan(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes, cands, points, *statics)
+    version, threshold, backward, margin, fallback, k, capacity, many, samples = statics
+    # Two programs: the labels depend on the plan's sizes, the rest (most of the tracing) does not.
+    labels = _jit_labels(images_prev, images, boxes_prev, boxes, cands, points, version, margin, fallback, k, capacity,
+                         many)
+    return _jit_from_labels(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes, labels, threshold,
+                            backward, samples)
 
 
 def rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples,
@@ -325,13 +330,36 @@ def ground_truth_from_plan(
     """The second stage of a camera's ground truth (traceable; the arguments from
     ``carla_version`` on are static, `rest_statics`): semantic and instance labels at t-1 and t
     (`assign_instances` on `ground_truth_plan`'s ``cands`` and ``points``), motion, forward (and
-    with ``backward_flow`` backward) flow, and the 2D boxes, as one `CameraGroundTruth`."""
+    with ``backward_flow`` backward) flow, and the 2D boxes, as one `CameraGroundTruth`: `labels_from_plan`,
+    then `truth_from_labels`."""
+    labels = labels_from_plan(img_p, img, boxes_prev, boxes, cands, points, carla_version, margin_m, fallback_m, k,
+                              capacity, capacity_many)
+    # Materialise the labels: otherwise XLA fuses their tile scatters and transposes into the flow's
+    # and the boxes' consumers.
+    inst_p, inst = materialize((labels[0], labels[2]), img.range_m.reshape(-1)[0])
+    return truth_from_labels(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, (inst_p, labels[1], inst, labels[3]),
+                             motion_threshold_m, backward_flow, surface_samples)
+
+
+def labels_from_plan(img_p: FisheyeImages, img: FisheyeImages, boxes_prev: Boxes3D, boxes: Boxes3D, cands, points,
+                     carla_version: str, margin_m: float, fallback_m: float, k: int, capacity: int,
+                     capacity_many: int) -> tuple:
+    """The labels of `ground_truth_from_plan` (the arguments from ``carla_version`` on static):
+    ``(instances_prev, semantic_prev, instances, semantic)``."""
     inst_p, sem_p = _labels(img_p, points[0], boxes_prev, carla_version, margin_m, fallback_m, k, capacity, cands[0],
                             capacity_many)
     inst, sem = _labels(img, points[1], boxes, carla_version, margin_m, fallback_m, k, capacity, cands[1], capacity_many)
-    # Materialise the labels: otherwise XLA fuses their tile scatters and transposes into the flow's
-    # and the boxes' consumers.
-    inst_p, inst = materialize((inst_p, inst), img.range_m.reshape(-1)[0])
+    return inst_p, sem_p, inst, sem
+
+
+def truth_from_labels(camera: AbstractCamera, rays: tuple[Float[Array, "H W 3"], Bool[Array, "H W"]],
+                      img_p: FisheyeImages, img: FisheyeImages, c2w_p: Pose, c2w: Pose, boxes_prev: Boxes3D,
+                      boxes: Boxes3D, labels: tuple, motion_threshold_m: float, backward_flow: bool,
+                      surface_samples: int) -> CameraGroundTruth:
+    """The rest of `ground_truth_from_plan` from its ``labels`` (`labels_from_plan`'s; the
+    arguments from ``motion_threshold_m`` on static): motion, flow and 2D boxes. Independent of
+    the planning stage's sizes, so that one compiled program serves every camera of a rig."""
+    inst_p, sem_p, inst, sem = labels
     disp = box_displacements(boxes_prev, boxes)
     motion = motion_segmentation(inst.box_index, disp, boxes.class_id, threshold_m=motion_threshold_m)
     fwd_motion = rigid_motion(boxes_prev.box_to_world, boxes.box_to_world)
@@ -350,4 +378,5 @@ def ground_truth_from_plan(
     )
 
 
-_jit_from_plan = jax.jit(ground_truth_from_plan, static_argnums=tuple(range(10, 19)))
+_jit_labels = jax.jit(labels_from_plan, static_argnums=tuple(range(6, 12)))
+_jit_from_labels = jax.jit(truth_from_labels, static_argnums=(9, 10, 11))
