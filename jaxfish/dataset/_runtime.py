@@ -102,8 +102,9 @@ def accelerator_sharing_env() -> dict[str, str]:
     """The environment `local_cluster`'s process workers get so that they, and the process that
     started them, can share one GPU: ``{PREALLOCATE_ENV: "false"}`` (each allocates GPU memory as it
     needs it; with JAX's default the first process to start takes 75 % of it and each later one
-    settles, after failed allocations, for a share of what is left), or nothing where this process's environment sets
-    `PREALLOCATE_ENV` itself (the workers inherit that choice). No effect without a GPU."""
+    settles, after failed allocations, for a share of what is left), or nothing where this
+    process's environment sets `PREALLOCATE_ENV` itself (the workers inherit that choice). No
+    effect without a GPU."""
     return {} if PREALLOCATE_ENV in os.environ else {PREALLOCATE_ENV: "false"}
 
 

@@ -330,8 +330,8 @@ def ground_truth_from_plan(
     """The second stage of a camera's ground truth (traceable; the arguments from
     ``carla_version`` on are static, `rest_statics`): semantic and instance labels at t-1 and t
     (`assign_instances` on `ground_truth_plan`'s ``cands`` and ``points``), motion, forward (and
-    with ``backward_flow`` backward) flow, and the 2D boxes, as one `CameraGroundTruth`: `labels_from_plan`,
-    then `truth_from_labels`."""
+    with ``backward_flow`` backward) flow, and the 2D boxes, as one `CameraGroundTruth`:
+    `labels_from_plan`, then `truth_from_labels`."""
     labels = labels_from_plan(img_p, img, boxes_prev, boxes, cands, points, carla_version, margin_m, fallback_m, k,
                               capacity, capacity_many)
     # Materialise the labels: otherwise XLA fuses their tile scatters and transposes into the flow's
