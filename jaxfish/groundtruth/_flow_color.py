@@ -77,12 +77,17 @@ def flow_to_color(
     fk = (a + 1) / 2 * (n - 1)
     k0 = jnp.floor(fk).astype(jnp.int32)
     k1 = jnp.where(k0 + 1 == n, 0, k0 + 1)
-    frac = (fk - k0.astype(dtype))[..., None]
-    col = (1 - frac) * wheel[k0] + frac * wheel[k1]
-    inside = (rad <= 1)[..., None]
-    col = jnp.where(inside, 1 - rad[..., None] * (1 - col), col * 0.75)
-    out = jnp.floor(255 * col).astype(jnp.uint8)
-    return jnp.where(ok[..., None], out, jnp.uint8(0))
+    frac = fk - k0.astype(dtype)
+    inside = rad <= 1
+    # One plane per channel, materialised before the interleave: fused into the minor-axis
+    # (..., 3) output, XLA:CPU runs the whole colour computation in a loop that does not vectorise.
+    planes = []
+    for c in range(3):
+        w = wheel[:, c]
+        col = (1 - frac) * w[k0] + frac * w[k1]
+        col = jnp.where(inside, 1 - rad * (1 - col), col * 0.75)
+        planes.append(jnp.where(ok, jnp.floor(255 * col).astype(jnp.uint8), jnp.uint8(0)))
+    return jnp.stack(materialize(planes, u.reshape(-1)[0]), axis=-1)
 
 
 def events_to_color(
