@@ -79,10 +79,12 @@ def _candidates(points_world, pixel_class, boxes: Boxes3D, tile: int, reach: flo
     instance points against each box's world AABB grown by ``reach``. Returns ``(T, B)``."""
     dtype = points_world.dtype
     grp = _pixel_groups(pixel_class)
-    use = (grp > 0)[..., None]
+    use = grp > 0
     big = jnp.asarray(np.finfo(np.float32).max / 4, dtype)
-    lo = _tile_reduce(jnp.where(use, points_world, big), tile, big, jnp.min)
-    hi = _tile_reduce(jnp.where(use, points_world, -big), tile, -big, jnp.max)
+    # Coordinate by coordinate: XLA:CPU reduces planes far faster than the interleaved (H, W, 3)
+    # points (the same minima and maxima).
+    lo = jnp.stack([_tile_reduce(jnp.where(use, points_world[..., i], big), tile, big, jnp.min) for i in range(3)], -1)
+    hi = jnp.stack([_tile_reduce(jnp.where(use, points_world[..., i], -big), tile, -big, jnp.max) for i in range(3)], -1)
     has_ped = _tile_reduce(grp == 1, tile, False, jnp.any)
     has_veh = _tile_reduce(grp == 2, tile, False, jnp.any)
     c = boxes.corners().astype(dtype)
