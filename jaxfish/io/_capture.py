@@ -170,8 +170,25 @@ def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = Tru
 def face_stacks(faces: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Empty ``(faces, size, size)`` stacks `read_images` decodes a camera's faces into (``out``):
     RGB ``(..., 3)`` uint8, depth float32 metres, semantic tags uint8."""
-    return (np.empty((faces, size, size, 3), np.uint8), np.empty((faces, size, size), np.float32),
-            np.empty((faces, size, size), np.uint8))
+    return (aligned_empty((faces, size, size, 3), np.uint8), aligned_empty((faces, size, size), np.float32),
+            aligned_empty((faces, size, size), np.uint8))
+
+
+ARRAY_ALIGNMENT = 64
+"""Byte alignment of the arrays `face_stacks` allocates: JAX's CPU backend takes a NumPy array
+aligned to 64 bytes as it is (no copy into a buffer of its own on every call of a program)."""
+
+
+def aligned_empty(shape: tuple[int, ...], dtype) -> np.ndarray:
+    """``np.empty(shape, dtype)`` whose data starts at a multiple of `ARRAY_ALIGNMENT` bytes (an
+    empty array holds no data: `np.empty`'s own)."""
+    dtype = np.dtype(dtype)
+    size = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if size == 0:
+        return np.empty(shape, dtype)
+    raw = np.empty(size + ARRAY_ALIGNMENT, np.uint8)
+    start = -raw.ctypes.data % ARRAY_ALIGNMENT
+    return raw[start:start + size].view(dtype).reshape(shape)
 
 
 def _checked(decode, path: Path, size: tuple[int, int] | None, out: np.ndarray | None = None):

@@ -154,14 +154,15 @@ def _camera_truth(name: str, camera, rays, truth: gt.CameraGroundTruth, events: 
     rng = np.asarray(truth.images.range_m, np.float32)
 
     def flow_rgb(field: gt.FlowField):
-        return jit["flow_color"](np.asarray(field.flow, np.float32), valid=np.asarray(field.valid), max_radius=None)
+        # Device arrays as they are: a NumPy copy would be copied back into the program.
+        return jit["flow_color"](jnp.asarray(field.flow, jnp.float32), valid=jnp.asarray(field.valid), max_radius=None)
 
     return CameraTruth(
         name=name, camera=camera, truth=truth,
         z_depth_m=jit["z_depth"](camera, truth.images.range_m, rays=rays),
         depth_rgb=depth_to_color(rng),
-        semantic_rgb=jit["colorize"](np.asarray(truth.semantic)),
-        instance_rgb=jit["instance_colors"](np.asarray(truth.instances.actor_id)),
+        semantic_rgb=jit["colorize"](jnp.asarray(truth.semantic)),
+        instance_rgb=jit["instance_colors"](jnp.asarray(truth.instances.actor_id)),
         flow_rgb=flow_rgb(truth.flow),
         flow_backward_rgb=flow_rgb(truth.flow_backward) if backward and truth.flow_backward is not None else None,
         events=events, events_rgb=None if events is None else events_color(events, width=w, height=h))

@@ -284,3 +284,21 @@ def test_faces_are_decoded_by_at_most_decode_threads_threads(capture, monkeypatc
         want = CaptureReader(capture[0]).faces_stacks(0, [view])[view]
         for field in ("rgb", "depth_m", "semantic", "actor_id"):
             np.testing.assert_array_equal(getattr(stacks[view], field), getattr(want, field))
+
+
+def test_face_stacks_are_aligned_so_that_jax_takes_them_without_a_copy(capture):
+    """A capture's face stacks start at a multiple of `ARRAY_ALIGNMENT` bytes; on the CPU backend
+    JAX then reads the array's own memory instead of copying it at every call."""
+    import jax
+
+    from jaxfish.io._capture import ARRAY_ALIGNMENT, aligned_empty
+
+    for shape, dtype in (((2, 5, 5, 3), np.uint8), ((3, 7, 7), np.float32), ((1,), np.float64)):
+        a = aligned_empty(shape, dtype)
+        assert a.shape == shape and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable
+        assert a.ctypes.data % ARRAY_ALIGNMENT == 0
+    stacks = CaptureReader(capture[0]).faces_stack(0, "FV")
+    for a in (stacks.rgb, stacks.depth_m, stacks.semantic):
+        assert a.ctypes.data % ARRAY_ALIGNMENT == 0
+        if jax.default_backend() == "cpu":
+            assert jax.device_put(a).unsafe_buffer_pointer() == a.ctypes.data
