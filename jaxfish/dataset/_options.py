@@ -42,9 +42,11 @@ class BuildOptions:
     ``png_level`` is the zlib level (0-9) of every PNG (1: the fastest; higher levels write smaller
     PNGs more slowly, see docs/performance.md); ``write_threads`` writes a sample's files in a pool
     of that many threads (0 = inline); ``tune_allocator`` applies `tune_allocator` in the processes
-    that build samples (off by default: a whole build, whose time is mostly I/O, gains no measurable
-    time and peaks higher in memory; applied anyway in a process whose environment sets ``MALLOC_TRIM_THRESHOLD_``,
-    as dask's nannies do, where glibc's dynamic mmap threshold is already off); ``batch_frames``
+    that build samples (on by default: the ground truth's programs then reuse their buffers instead
+    of page-faulting fresh mappings, for a higher peak of memory, see docs/performance.md; False
+    leaves glibc's allocator as it is, except in a process whose environment sets
+    ``MALLOC_TRIM_THRESHOLD_``, as dask's nannies do, where glibc's dynamic mmap threshold is
+    already off and tuning is always applied); ``batch_frames``
     computes the fisheye ground truth of that many consecutive samples in one batched call
     (`build_samples`; one dask task each): no faster on CPU, where the cameras and frames are
     looped anyway, but one wide `jax.vmap` program on an accelerator; it holds that many samples in
@@ -59,7 +61,7 @@ class BuildOptions:
     motion_threshold_m: float = 0.5
     png_level: int = 1
     write_threads: int = 2
-    tune_allocator: bool = False
+    tune_allocator: bool = True
     batch_frames: int = 1
     compile_cache: bool | str | os.PathLike = True
 

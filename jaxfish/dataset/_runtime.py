@@ -31,9 +31,9 @@ def tune_allocator() -> bool:
     Why: a sample's ground truth allocates and frees hundreds of image-sized buffers; served by
     fresh mappings, every one of them page-faults and is zeroed by the kernel again, and kept in
     the heap they are reused. The cost: freed memory is not returned to the system until the
-    process ends, so a dataset build peaks higher, while most of its time is PNG and file I/O;
-    `build_dataset` therefore applies it only with ``BuildOptions(tune_allocator=True)``. It suits
-    scripts that compute ground truth in a loop (``scripts/bench_groundtruth.py`` applies it).
+    process ends, so a process peaks higher. The dataset builder applies it in the processes that
+    build samples unless ``BuildOptions(tune_allocator=False)``; it suits any script that computes
+    ground truth in a loop (``scripts/bench_groundtruth.py`` applies it).
     Measured effect: ``docs/performance.md``.
 
     Idempotent and process-wide. Returns True when applied, False where the C library is not glibc

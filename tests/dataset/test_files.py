@@ -193,6 +193,24 @@ def test_tune_allocator_is_idempotent_and_optional():
     assert "tune_allocator" not in BuildOptions(tune_allocator=False).to_dict()  # it never changes bytes
 
 
+@pytest.mark.parametrize("tune, env, applied", [(None, False, True), (False, False, False), (False, True, True)])
+def test_a_building_process_tunes_the_allocator_unless_told_not_to(monkeypatch, tune, env, applied):
+    """`BuildOptions.tune_allocator` is on by default; off, the allocator is still tuned where the
+    environment sets ``MALLOC_TRIM_THRESHOLD_`` (dask's nannies)."""
+    from jaxfish.dataset import BuildOptions, _build
+
+    calls = []
+    monkeypatch.setattr(_build, "tune_allocator", lambda: calls.append(1) or True)
+    monkeypatch.setattr(_build, "use_compile_cache", lambda cache: None)
+    if env:
+        monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
+    else:
+        monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    options = BuildOptions() if tune is None else BuildOptions(tune_allocator=tune)
+    _build._prepare_process(options)
+    assert bool(calls) is applied
+
+
 def test_a_marker_of_another_layout_version_is_not_complete(tmp_path):
     import json
 
