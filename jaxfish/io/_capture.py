@@ -603,9 +603,10 @@ class CaptureReader:
                      actor_ids: bool = True) -> dict[tuple[str, str], CameraImages]:
         """`faces_stack` of every ``(camera, instant)`` in ``views``, all faces decoded in one pool
         of `decode_threads` threads (PNG decoding releases the GIL). With ``capture.json``'s
-        ``face_size`` the RGB, depth and semantic images are decoded straight into the stacks
-        (read-only with ``reuse_decoded=True``, as `face`'s arrays); without it each face is decoded
-        alone, then stacked."""
+        ``face_size`` the RGB, depth and semantic images are decoded straight into the stacks, which
+        are returned read-only (JAX programs read these aligned arrays in place, without a copy, so
+        they must not change while a computation on them may still run); without it each face is
+        decoded alone, then stacked."""
         size = self.meta.get("face_size")
         n = len(self.faces)
         stacks = {v: None if size is None else face_stacks(n, int(size)) for v in views}
@@ -625,8 +626,8 @@ class CaptureReader:
             out = stacks[v]
             if out is None:
                 out = tuple(np.stack([getattr(f, k) for f in faces]) for k in ("rgb", "depth_m", "semantic"))
-            elif self._reuse_key is not None:
-                for a in out:  # their curr faces are kept for later readers (`read_images`'s ``reuse``)
+            else:  # kept for later readers with ``reuse_decoded`` (`read_images`'s ``reuse``); read in place by JAX
+                for a in out:
                     a.setflags(write=False)
             result[v] = CameraImages(*out, None if faces[0].actor_id is None else np.stack([f.actor_id for f in faces]))
         return result
