@@ -46,6 +46,7 @@ from ._runtime import (
     accelerator_sharing_env,
     core_shares,
     encode_shares,
+    openexr_in_calling_thread,
     share_accelerator,
     tune_allocator,
     use_compile_cache,
@@ -364,6 +365,7 @@ def _write_sample(source, out: Path, truth: SampleTruth, options: BuildOptions, 
 
 def _prepare_process(options: BuildOptions) -> None:
     use_compile_cache(options.compile_cache)  # idempotent: configured before this process's first program
+    openexr_in_calling_thread()  # the builder's own threads write and read the files
     if options.tune_allocator or "MALLOC_TRIM_THRESHOLD_" in os.environ:
         # In the process that builds (a dask worker or the serial build's). A fixed trim threshold
         # in the environment (dask's nannies set one) has already turned glibc's dynamic mmap

@@ -59,6 +59,20 @@ def _apply() -> bool:
     return bool(ok)
 
 
+def openexr_in_calling_thread() -> None:
+    """Have OpenImageIO read and write OpenEXR files in the thread that calls it (its
+    ``exr_threads`` attribute set to -1: OpenEXR starts no thread pool of its own).
+
+    Why: the builder writes a sample's files on its own threads (``BuildOptions.write_threads``)
+    and decodes a capture on its decode threads; OpenEXR's pool would only hand the same work to
+    other threads, at a cost in CPU time (the same bytes either way). The builder applies it in
+    the processes that build samples. Measured effect: ``docs/performance.md``. Process-wide and
+    idempotent."""
+    import OpenImageIO as oiio
+
+    oiio.attribute("exr_threads", -1)
+
+
 def core_shares(workers: int, cores: Sequence[int]) -> list[tuple[int, ...]]:
     """One share of ``cores`` per worker: disjoint contiguous groups whose sizes differ by at most
     one when there are at least as many cores as workers, one core each round robin otherwise."""

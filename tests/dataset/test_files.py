@@ -211,6 +211,28 @@ def test_a_building_process_tunes_the_allocator_unless_told_not_to(monkeypatch, 
     assert bool(calls) is applied
 
 
+def test_a_building_process_reads_and_writes_openexr_in_the_calling_thread(monkeypatch, tmp_path):
+    """The builder's own threads write the files: OpenEXR gets no thread pool of its own, and an
+    EXR's bytes do not depend on it."""
+    import OpenImageIO as oiio
+
+    from jaxfish.dataset import BuildOptions, _build
+    from jaxfish.io import write_depth_exr
+
+    monkeypatch.setattr(_build, "tune_allocator", lambda: True)
+    monkeypatch.setattr(_build, "use_compile_cache", lambda cache: None)
+    depth = np.random.default_rng(0).uniform(0.5, 1000.0, (67, 45)).astype(np.float32)
+    before = oiio.get_int_attribute("exr_threads")
+    try:
+        oiio.attribute("exr_threads", 2)
+        pooled = write_depth_exr(tmp_path / "pooled.exr", depth, {"unit": "m"}).read_bytes()
+        _build._prepare_process(BuildOptions())
+        assert oiio.get_int_attribute("exr_threads") == -1
+        assert write_depth_exr(tmp_path / "caller.exr", depth, {"unit": "m"}).read_bytes() == pooled
+    finally:
+        oiio.attribute("exr_threads", before)
+
+
 def test_a_marker_of_another_layout_version_is_not_complete(tmp_path):
     import json
 
