@@ -110,8 +110,14 @@ def camera_to_world(vehicle_to_world: Pose, camera_to_vehicle: Pose) -> Pose:
     return v @ c
 
 
-def _labels(images: FisheyeImages, points, boxes: Boxes3D, carla_version, margin_m, fallback_m, k, capacity, cand,
-            capacity_many):
+def instant_labels(images: FisheyeImages, boxes: Boxes3D, cand: Bool[Array, "T B"],
+                   points: tuple[Float[Array, "H W 3"], Int[Array, "H W"]], carla_version: str, margin_m: float,
+                   fallback_m: float, k: int, capacity: int, capacity_many: int) -> tuple[InstanceMap, Int[Array, "H W"]]:
+    """The labels of one instant (traceable; the arguments from ``carla_version`` on static,
+    `rest_statics`): `assign_instances` on `instant_plan`'s ``cand`` and ``points``, and the
+    SynWoodScape semantics with two-wheelers and the ego split off by their boxes. Returns
+    ``(instances, semantic)``; the values do not depend on ``k`` and the capacities as long as
+    they hold the plan's counts."""
     world, base = points  # world points and base classes, from the planning step
     inst = assign_instances(world, base, boxes, margin_m, fallback_m, TILE_SIZE, k, capacity, cand, capacity_many)
     sem = carla_to_synwoodscape(images.tag, carla_version=carla_version, box_class=inst.class_id)
@@ -171,25 +177,32 @@ def ground_truth_from_images(
     fallback_m: float = FALLBACK_DISTANCE_M,
     max_candidates: int | None = None,
     surface_samples: int = 12,
+    labels_prev: tuple[InstanceMap, Int[Array, "H W"]] | None = None,
 ) -> CameraGroundTruth:
     """`fisheye_ground_truth` from the camera's images at t-1 and t (`fisheye_images`, or a
-    directly captured view's): the two compiled stages `ground_truth_plan` and
-    `ground_truth_from_plan` with one host round trip between them for the static sizes
-    (`rest_statics`). ``rays``: the camera's float32 `pixel_rays`; the options are
-    `fisheye_ground_truth`'s. Not traceable (it reads the plan's sizes back)."""
+    directly captured view's): per instant `instant_plan` and `instant_labels` (one host round
+    trip between them for the static sizes, `rest_statics`), then `truth_from_labels`.
+    ``rays``: the camera's float32 `pixel_rays`; the options are `fisheye_ground_truth`'s.
+    ``labels_prev``: ``(instances, semantic)`` at t-1 when already known for these images,
+    boxes, poses and options (a sequence's previous sample computed them as its labels at t:
+    the same programs on the same inputs, so the same bits); the planning and labelling of t-1 are
+    then skipped. Not traceable (it reads the plans' sizes back)."""
     c2w_p = camera_to_world(vehicle_to_world_prev, camera_to_vehicle)
     c2w = camera_to_world(vehicle_to_world, camera_to_vehicle)
     reach = max(margin_m, fallback_m)
-    k_host, n_host, m_host, cands, points = _jit_plan(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes,
-                                                       carla_version, reach)
-    statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates,
-                           surface_samples, k_host, n_host, m_host)
-    version, threshold, backward, margin, fallback, k, capacity, many, samples = statics
-    # Two programs: the labels depend on the plan's sizes, the rest (most of the tracing) does not.
-    labels = _jit_labels(images_prev, images, boxes_prev, boxes, cands, points, version, margin, fallback, k, capacity,
-                         many)
-    return _jit_from_labels(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes, labels, threshold,
-                            backward, samples)
+    todo = [(images, c2w, boxes)] if labels_prev is not None else [(images_prev, c2w_p, boxes_prev), (images, c2w, boxes)]
+    plans = [_jit_instant_plan(camera, rays, im, c2w_, bx, carla_version, reach) for im, c2w_, bx in todo]
+    labels = []
+    for (im, _, bx), (k_host, n_host, m_host, cand, points) in zip(todo, plans, strict=True):
+        statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates,
+                               surface_samples, k_host, n_host, m_host)
+        version, _, _, margin, fallback, k, capacity, many, _ = statics
+        labels.append(_jit_instant_labels(im, bx, cand, points, version, margin, fallback, k, capacity, many))
+    if labels_prev is not None:
+        labels.insert(0, labels_prev)
+    (inst_p, sem_p), (inst, sem) = labels
+    return _jit_from_labels(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes, (inst_p, sem_p, inst, sem),
+                            float(motion_threshold_m), bool(backward_flow), int(surface_samples))
 
 
 def rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples,
@@ -270,6 +283,26 @@ def _world_points(camera, rays, images: FisheyeImages, cam_to_world: Pose):
     return apply_pose(cam_to_world, pts), ok & images.valid
 
 
+def instant_plan(
+    camera: AbstractCamera,
+    rays: tuple[Float[Array, "H W 3"], Bool[Array, "H W"]],
+    images: FisheyeImages,
+    c2w: Pose,
+    boxes: Boxes3D,
+    carla_version: str,
+    reach: float,
+) -> tuple[Int[Array, ""], Int[Array, ""], Int[Array, ""], Bool[Array, "T B"], tuple[Float[Array, "H W 3"], Int[Array, "H W"]]]:
+    """The planning of one instant (traceable; ``carla_version`` and ``reach`` static): each
+    pixel's CARLA world point and base SynWoodScape class (-1: no pixel) from ``images`` and the
+    camera -> world pose ``c2w`` (`camera_to_world`), and `instance_plan` against ``boxes``.
+    Returns ``(k, busy, many, candidates, (world points, base classes))``, which
+    `instant_labels` consumes. ``reach``: max(margin_m, fallback_m) in metres."""
+    world, ok = _world_points(camera, rays, images, c2w)
+    base = jnp.where(ok, carla_to_synwoodscape(images.tag, carla_version=carla_version), -1)
+    k, n, m, c = instance_plan(world, base, boxes, TILE_SIZE, reach)
+    return k, n, m, c, (world, base)
+
+
 def ground_truth_plan(
     camera: AbstractCamera,
     rays: tuple[Float[Array, "H W 3"], Bool[Array, "H W"]],
@@ -284,26 +317,16 @@ def ground_truth_plan(
 ) -> tuple[Int[Array, ""], Int[Array, ""], Int[Array, ""], tuple[Bool[Array, "T B"], Bool[Array, "T B"]],
            tuple[tuple[Float[Array, "H W 3"], Int[Array, "H W"]], tuple[Float[Array, "H W 3"], Int[Array, "H W"]]]]:
     """The first stage of a camera's ground truth (traceable; ``carla_version`` and ``reach``
-    static): each pixel's CARLA world point and base SynWoodScape class at t-1 and t (images
-    ``img_p`` / ``img``, camera -> world poses ``c2w_p`` / ``c2w``, `camera_to_world`) and
-    `instance_plan` of each instant against its boxes. Returns ``(k, busy, many, candidates,
-    points)``: the larger of the two instants' counts (`instance_plan`), the two ``(T, B)``
-    candidate masks and the two ``(world points, base classes)`` pairs (-1: no pixel), which
-    `ground_truth_from_plan` consumes. ``reach``: max(margin_m, fallback_m) in metres."""
-    ks, ns, ms, cs, pts = [], [], [], [], []
-    for im, c2w_, bx in ((img_p, c2w_p, boxes_prev), (img, c2w, boxes)):
-        world, ok = _world_points(camera, rays, im, c2w_)
-        base = jnp.where(ok, carla_to_synwoodscape(im.tag, carla_version=carla_version), -1)
-        k, n, m, c = instance_plan(world, base, bx, TILE_SIZE, reach)
-        ks.append(k)
-        ns.append(n)
-        ms.append(m)
-        cs.append(c)
-        pts.append((world, base))
-    return jnp.max(jnp.stack(ks)), jnp.max(jnp.stack(ns)), jnp.max(jnp.stack(ms)), tuple(cs), tuple(pts)
+    static): `instant_plan` at t-1 (images ``img_p``, camera -> world pose ``c2w_p``, boxes
+    ``boxes_prev``) and at t. Returns ``(k, busy, many, candidates, points)``: the larger of the
+    two instants' counts, the two ``(T, B)`` candidate masks and the two ``(world points, base
+    classes)`` pairs, which `ground_truth_from_plan` consumes."""
+    p = instant_plan(camera, rays, img_p, c2w_p, boxes_prev, carla_version, reach)
+    q = instant_plan(camera, rays, img, c2w, boxes, carla_version, reach)
+    return jnp.maximum(p[0], q[0]), jnp.maximum(p[1], q[1]), jnp.maximum(p[2], q[2]), (p[3], q[3]), (p[4], q[4])
 
 
-_jit_plan = jax.jit(ground_truth_plan, static_argnums=(8, 9))
+_jit_instant_plan = jax.jit(instant_plan, static_argnums=(5, 6))
 
 
 def ground_truth_from_plan(
@@ -346,9 +369,10 @@ def labels_from_plan(img_p: FisheyeImages, img: FisheyeImages, boxes_prev: Boxes
                      capacity_many: int) -> tuple:
     """The labels of `ground_truth_from_plan` (the arguments from ``carla_version`` on static):
     ``(instances_prev, semantic_prev, instances, semantic)``."""
-    inst_p, sem_p = _labels(img_p, points[0], boxes_prev, carla_version, margin_m, fallback_m, k, capacity, cands[0],
-                            capacity_many)
-    inst, sem = _labels(img, points[1], boxes, carla_version, margin_m, fallback_m, k, capacity, cands[1], capacity_many)
+    inst_p, sem_p = instant_labels(img_p, boxes_prev, cands[0], points[0], carla_version, margin_m, fallback_m, k,
+                                   capacity, capacity_many)
+    inst, sem = instant_labels(img, boxes, cands[1], points[1], carla_version, margin_m, fallback_m, k, capacity,
+                               capacity_many)
     return inst_p, sem_p, inst, sem
 
 
@@ -378,5 +402,5 @@ def truth_from_labels(camera: AbstractCamera, rays: tuple[Float[Array, "H W 3"],
     )
 
 
-_jit_labels = jax.jit(labels_from_plan, static_argnums=tuple(range(6, 12)))
+_jit_instant_labels = jax.jit(instant_labels, static_argnums=tuple(range(4, 10)))
 _jit_from_labels = jax.jit(truth_from_labels, static_argnums=(9, 10, 11))

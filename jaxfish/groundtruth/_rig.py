@@ -19,7 +19,7 @@ from typing import Any, Literal
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ..cameras import AbstractCamera
 from ..reprojection import Lut
@@ -37,7 +37,7 @@ from ._fisheye import (
     rest_statics,
 )
 from ._flow import pixel_rays
-from ._instances import BOX_MARGIN_M, FALLBACK_DISTANCE_M, MOTION_THRESHOLD_M
+from ._instances import BOX_MARGIN_M, FALLBACK_DISTANCE_M, MOTION_THRESHOLD_M, InstanceMap
 
 BatchMode = Literal["auto", "vmap", "loop"]
 
@@ -188,6 +188,7 @@ def rig_ground_truth(
     batch: BatchMode = "auto",
     stacked: bool = True,
     images_prev: Sequence[FisheyeImages | None] | None = None,
+    labels_prev: Sequence[tuple[InstanceMap, Array] | None] | None = None,
 ) -> CameraGroundTruth | list:
     """`fisheye_ground_truth` for every camera of a rig at once, for one sample or a batch of samples.
 
@@ -217,7 +218,11 @@ def rig_ground_truth(
     ``images_prev`` (one sample, ``batch="loop"``): per camera, its `FisheyeImages` at t-1 when
     they are already known, or None. A sequence's previous sample computed them as its images at
     t when its faces at t are this sample's faces at t-1: the same program on the same faces, so
-    the same bits. Those cameras resample only their faces at t (``faces_prev`` is not read)."""
+    the same bits. Those cameras resample only their faces at t (``faces_prev`` is not read).
+    ``labels_prev`` (with ``images_prev``): per camera, its ``(instances, semantic)`` at t-1 when
+    already known for those images, these ``boxes_prev`` and ``vehicle_to_world_prev`` and the
+    same options (the previous sample's labels at t), or None; those cameras plan and label only
+    the instant t."""
     mode = resolve_batch_mode(batch)
     fp, fc = _faces_tuple(faces_prev, "faces_prev"), _faces_tuple(faces, "faces")
     single = fc[0].ndim == 5
@@ -231,6 +236,10 @@ def rig_ground_truth(
     if images_prev is not None and (mode != "loop" or not single or len(images_prev) != c):
         raise ValueError(f"rig_ground_truth: images_prev needs batch='loop' and one sample, with one entry per camera "
                          f"({c}); got batch={mode!r}, faces {fc[0].shape}, {len(images_prev)} entries")
+    if labels_prev is not None and (images_prev is None or len(labels_prev) != c
+                                    or any(lab is not None and im is None for lab, im in zip(labels_prev, images_prev, strict=True))):
+        raise ValueError(f"rig_ground_truth: labels_prev needs images_prev, with one entry per camera ({c}) and images "
+                         "wherever labels are given")
     luts, cameras = _per_camera(luts, c, "luts", mode), _per_camera(cameras, c, "cameras", mode)
     if rays is not None:
         rays = _per_camera([tuple(r) for r in rays] if isinstance(rays, list) else tuple(rays), c, "rays", mode)
@@ -266,7 +275,7 @@ def rig_ground_truth(
     # sizes back, queue the rest asynchronously), then the next camera. Interleaving keeps one
     # camera's intermediates alive at a time, which is faster on CPU than planning every camera first
     # with one shared round trip, or than fusing the images into the plan program.
-    def one(cam, smp, item, known_prev):
+    def one(cam, smp, item, known_prev, known_labels):
         lut, camera, c2v_j, ray = cam
         (rgb_p, dep_p, tag_p), (rgb, dep, tag) = item
         if known_prev is None:
@@ -276,17 +285,18 @@ def rig_ground_truth(
         return ground_truth_from_images(
             camera, ray, img_p, img, c2v_j, *smp, carla_version=carla_version, motion_threshold_m=motion_threshold_m,
             backward_flow=backward_flow, margin_m=margin_m, fallback_m=fallback_m, max_candidates=max_candidates,
-            surface_samples=surface_samples)
+            surface_samples=surface_samples, labels_prev=known_labels)
 
     # Each camera's faces in one indexing step (a view of NumPy faces, one slice of device faces).
     per_camera = [(luts[j], cameras[j], _at(c2v, j), rays[j]) for j in range(c)]
     rows = []
     known = images_prev or [None] * c
+    known_labels = labels_prev or [None] * c
     for i in range(n):
         smp = samples if single else _at(samples, i)
         index = [(j,) if single else (i, j) for j in range(c)]
-        rows.append([one(per_camera[j], smp, tuple(tuple(x[index[j]] for x in xs) for xs in (fp, fc)), known[j])
-                     for j in range(c)])
+        rows.append([one(per_camera[j], smp, tuple(tuple(x[index[j]] for x in xs) for xs in (fp, fc)), known[j],
+                         known_labels[j]) for j in range(c)])
     if not stacked:
         return rows[0] if single else rows
     return _stack(rows[0]) if single else stack_rig(rows)  # one copy of every output

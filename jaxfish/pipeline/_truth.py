@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import threading
 from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -191,50 +192,85 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
         lambda *xs: np.asarray(xs[0]) if n == 1 else np.stack([np.asarray(x) for x in xs]),
         *[(m.boxes_prev, m.boxes, m.vehicle_to_world_prev, m.vehicle_to_world) for m in motions])
     sequential = n == 1 and resolve_batch_mode(options.batch) == "loop"
-    known = [_LAST_IMAGES.images_prev(k, cf.faces_prev) for k, cf in zip(cams, frames[0].camera_frames, strict=True)] \
-        if sequential else None
+    known = labels = None
+    if sequential:
+        # What the labels at t depend on besides the images: the boxes, the ego pose, the options.
+        inputs_prev = _LabelInputs(per_sample[0], per_sample[2], frames[0].carla_tags, options)
+        known = [_LAST_IMAGES.images_prev(k, cf.faces_prev) for k, cf in zip(cams, frames[0].camera_frames, strict=True)]
+        labels = [None if im is None else _LAST_IMAGES.labels_prev(k, inputs_prev) for k, im in zip(cams, known, strict=True)]
     rows = gt.rig_ground_truth(
         [k.lut for k in cams], [k.camera for k in cams], c2v, _Faces(**prev), _Faces(**curr), *per_sample,
         rays=[k.rays for k in cams], carla_version=frames[0].carla_tags, batch=options.batch, stacked=False,
-        images_prev=known, **options.ground_truth_keywords())
+        images_prev=known, labels_prev=labels, **options.ground_truth_keywords())
     if n == 1:
         rows = [rows]  # one sample: the list of its cameras
     if sequential:
+        inputs = _LabelInputs(per_sample[1], per_sample[3], frames[0].carla_tags, options)
         for k, cf, truth in zip(cams, frames[0].camera_frames, rows[0], strict=True):
-            _LAST_IMAGES.keep(k, cf.faces, truth.images)
+            _LAST_IMAGES.keep(k, cf.faces, truth.images, (truth.instances, truth.semantic), inputs)
     return [[_camera_truth(k.name, k.camera, k.rays, truth, camera_events(cf.events, k.event_map), options.backward_flow)
              for k, cf, truth in zip(cams, f.camera_frames, row, strict=True)]
             for f, row in zip(frames, rows, strict=True)]
 
 
+class _LabelInputs(NamedTuple):
+    """What a camera's labels at one instant depend on besides its images: the boxes and the
+    ego's vehicle -> world pose at that instant (host arrays), the tag table and the options."""
+
+    boxes: Any
+    vehicle_to_world: Any
+    carla_tags: str
+    options: GroundTruthOptions
+
+    def same(self, other: _LabelInputs) -> bool:
+        """Whether ``other`` holds the same values, bit for bit."""
+        if (self.carla_tags, self.options) != (other.carla_tags, other.options):
+            return False
+        mine, theirs = (jax.tree_util.tree_flatten((x.boxes, x.vehicle_to_world)) for x in (self, other))
+        return mine[1] == theirs[1] and all(_same_bytes(np.asarray(a), np.asarray(b))
+                                            for a, b in zip(mine[0], theirs[0], strict=True))
+
+
 class _LastImages:
-    """Each camera's last fisheye images at t, with the cube faces they were resampled from, so
-    that the next sample of a sequence, whose faces at t-1 are these faces (a byte-exact
-    comparison, never a guess), reuses them as its images at t-1 (the same program on the same
-    faces: the same bits as resampling them again). Only read-only faces are kept (a reader's
-    kept decodes, the embedded scene's renders, JAX arrays): a writable array could change
-    before the next sample. One entry per camera name; thread-safe."""
+    """Each camera's last fisheye images at t, with the cube faces they were resampled from, and
+    its labels at t with what they were computed from, so that the next sample of a sequence,
+    whose faces at t-1 are these faces (a byte-exact comparison, never a guess), reuses them as
+    its images at t-1 (the same program on the same faces: the same bits as resampling them
+    again), and its labels at t-1 too when its boxes, ego pose and options at t-1 are these.
+    Only read-only faces are kept (a reader's kept decodes, the embedded scene's renders, JAX
+    arrays): a writable array could change before the next sample. One entry per camera name;
+    thread-safe."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._kept: dict[str, tuple] = {}
 
-    def keep(self, k, faces, images: gt.FisheyeImages) -> None:
+    def keep(self, k, faces, images: gt.FisheyeImages, labels: tuple, inputs: _LabelInputs) -> None:
         arrays = tuple(np.asarray(getattr(faces, f)) for f in _FACE_FIELDS)
         with self._lock:
             if any(a.flags.writeable for a in arrays):
                 self._kept.pop(k.name, None)
             else:
-                self._kept[k.name] = (k.lut, arrays, images)
+                self._kept[k.name] = (k.lut, arrays, images, labels, inputs)
 
     def images_prev(self, k, faces_prev) -> gt.FisheyeImages | None:
         """The kept images at t when ``faces_prev`` equals the faces they came from, else None."""
-        with self._lock:
-            kept = self._kept.get(k.name)
-        if kept is None or kept[0] is not k.lut:
+        kept = self._get(k)
+        if kept is None:
             return None
         now = tuple(np.asarray(getattr(faces_prev, f)) for f in _FACE_FIELDS)
         return kept[2] if all(_same_bytes(a, b) for a, b in zip(kept[1], now, strict=True)) else None
+
+    def labels_prev(self, k, inputs_prev: _LabelInputs) -> tuple | None:
+        """The kept labels at t when ``inputs_prev`` equals what they were computed from, else
+        None (call it only for a camera whose kept images `images_prev` returned)."""
+        kept = self._get(k)
+        return kept[3] if kept is not None and kept[4].same(inputs_prev) else None
+
+    def _get(self, k) -> tuple | None:
+        with self._lock:
+            kept = self._kept.get(k.name)
+        return kept if kept is not None and kept[0] is k.lut else None
 
     def clear(self) -> None:
         with self._lock:
@@ -258,7 +294,7 @@ _LAST_IMAGES = _LastImages()
 
 
 def forget_last_images() -> None:
-    """Drop the fisheye images `sample_truth` keeps for the next sample of a sequence."""
+    """Drop the fisheye images and labels `sample_truth` keeps for the next sample of a sequence."""
     _LAST_IMAGES.clear()
 
 
@@ -349,9 +385,11 @@ def sample_truth(frame: Frame, constants: RigConstants, options: GroundTruthOpti
     and displacements. ``constants``: the rig's `RigConstants` (cameras in the frame's order).
 
     Frames of a sequence computed in order share work: with ``batch="loop"`` (the CPU default)
-    each camera's fisheye images at t are kept (one sample's worth per process,
+    each camera's fisheye images and labels at t are kept (one sample's worth per process,
     `forget_last_images` drops them), and a next frame whose cube faces at t-1 are those faces,
     byte for byte and read-only (`jaxfish.dataset.CaptureSource` and `jaxfish.dataset.EmbeddedSource`
-    give such frames), takes them as its images at t-1 instead of resampling them. The results
+    give such frames), takes them as its images at t-1 instead of resampling them; when its boxes
+    and ego pose at t-1 are also those at t of the kept frame (bit for bit) and the options the
+    same, it takes the kept instances and semantics as its labels at t-1 as well. The results
     are the same bits either way."""
     return sample_truths([frame], constants, options)[0]

@@ -140,7 +140,8 @@ def test_stacked_luts_and_rays_give_the_same_result(batch):
 
 def test_known_images_at_t_minus_1_give_the_same_result(batch):
     """``images_prev`` (a sequence's previous images at t): those cameras resample only their faces
-    at t, and their ground truth is each camera's; ``faces_prev`` is then not read."""
+    at t, and their ground truth is each camera's; ``faces_prev`` is then not read. With
+    ``labels_prev`` they also label only t."""
     fp, fc, bp, bc, vp, vc = _sample(batch, 1)
     known = [batch.reference[1][0].images_prev, None]
     blank = type(fp)(*(None if x is None else np.zeros_like(x) for x in dataclasses.astuple(fp)))
@@ -156,6 +157,16 @@ def test_known_images_at_t_minus_1_give_the_same_result(batch):
                                 images_prev=known)
     with pytest.raises(ValueError, match="one entry per camera"):
         gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, fp, fc, bp, bc, vp, vc, batch="loop", images_prev=known[:1])
+    # With its labels at t-1 too, the camera plans and labels only t, for the same result.
+    ref = batch.reference[1][0]
+    labels = [(ref.instances_prev, ref.semantic_prev), None]
+    rows = gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, blank_first, fc, bp, bc, vp, vc, backward_flow=True,
+                               batch="loop", stacked=False, images_prev=known, labels_prev=labels)
+    for j in range(len(CAMERAS)):
+        _assert_same(rows[j], batch.reference[1][j])
+    with pytest.raises(ValueError, match="labels_prev needs images_prev"):
+        gt.rig_ground_truth(batch.luts, batch.cams, batch.c2v, fp, fc, bp, bc, vp, vc, batch="loop",
+                            images_prev=[None, None], labels_prev=labels)
 
 
 def test_errors_name_the_argument(batch):

@@ -94,19 +94,23 @@ def test_consecutive_frames_share_their_instant(small_capture):
 
 def test_a_sequence_takes_its_images_at_t_minus_1_from_the_previous_sample(small_capture, monkeypatch):
     """Frame 1 after frame 0 resamples only its faces at t (its faces at t-1 are frame 0's at t,
-    byte for byte) and gives the bits of frame 1 alone; a frame whose faces at t-1 differ from the
-    kept ones, or whose faces are writable, resamples both instants."""
-    from jaxfish.groundtruth import _rig
+    byte for byte), plans and labels only its instant t, and gives the bits of frame 1 alone; a
+    frame whose faces at t-1 differ from the kept ones, or whose faces are writable, resamples
+    both instants, and one whose boxes or ego pose at t-1 differ labels both."""
+    from jaxfish.groundtruth import _fisheye, _rig
 
     pairs: list[int] = []
-    pair = _rig.fisheye_images_pair
+    plans: list[int] = []
+    pair, plan = _rig.fisheye_images_pair, _fisheye._jit_instant_plan
     monkeypatch.setattr(_rig, "fisheye_images_pair", lambda *a: (pairs.append(1), pair(*a))[1])
+    monkeypatch.setattr(_fisheye, "_jit_instant_plan", lambda *a: (plans.append(1), plan(*a))[1])
     source = CaptureSource(small_capture)
     constants = rig_constants_of(source)
     cameras = len(constants.cameras)
 
     def truth(frame):
         pairs.clear()
+        plans.clear()
         out = jp.sample_truth(frame, constants)
         return out, len(pairs)
 
@@ -119,11 +123,26 @@ def test_a_sequence_takes_its_images_at_t_minus_1_from_the_previous_sample(small
     assert resampled == cameras
     frame1 = source.read(1)
     after, resampled = truth(frame1)
+    planned = len(plans)
     assert resampled == 0  # every camera took its images at t-1 from frame 0
     jp.forget_last_images()
     alone, resampled = truth(frame1)
     assert resampled == cameras
+    assert planned == len(plans) - cameras  # and its labels at t-1: each fisheye plans only t
     _leaves_equal(arrays(after), arrays(alone))
+    # The same faces at t-1 with other boxes or another ego pose at t-1: the images are reused,
+    # the labels are not.
+    moved_boxes = eqx.tree_at(lambda f: f.motion.boxes_prev.box_to_world.translation, frame1,
+                              frame1.motion.boxes_prev.box_to_world.translation + np.float32(0.25))
+    moved_ego = eqx.tree_at(lambda f: f.motion.vehicle_to_world_prev.translation, frame1,
+                            frame1.motion.vehicle_to_world_prev.translation + np.float32(0.25))
+    for moved in (moved_boxes, moved_ego):
+        jp.forget_last_images()
+        truth(source.read(0))
+        other, resampled = truth(moved)
+        assert resampled == 0 and len(plans) == planned + cameras
+        jp.forget_last_images()
+        _leaves_equal(arrays(other), arrays(truth(moved)[0]))
     _, resampled = truth(source.read(0))  # frame 0's faces at t-1 are not frame 1's at t
     assert resampled == cameras
     jp.forget_last_images()
