@@ -46,14 +46,19 @@ def events_color(events: np.ndarray, *, width: int, height: int) -> UInt8[np.nda
     x, y = ev["x"], ev["y"]
     pol = ev["pol"] if "pol" in (ev.dtype.names or ()) else ev["p"] > 0
     idx = y.astype(np.intp) * width + x
-    if x.size and (int(x.min()) < 0 or int(y.min()) < 0 or int(x.max()) >= width or int(y.max()) >= height):
+    signed = x.dtype.kind != "u" or y.dtype.kind != "u"  # CARLA's are unsigned: no minimum to check
+    if x.size and (int(x.max()) >= width or int(y.max()) >= height or (signed and (int(x.min()) < 0 or int(y.min()) < 0))):
         ok = (x >= 0) & (x < width) & (y >= 0) & (y < height)
         idx, pol = idx[ok], pol[ok]
-    # Net polarity per pixel (float64 sums of +-1: exact), then one 3-byte gather per pixel.
-    net = np.bincount(idx, weights=np.where(pol, 1.0, -1.0), minlength=width * height)
-    key = (net > 0).view(np.uint8) + np.uint8(2) * (net < 0).view(np.uint8)
-    return _EVENT_COLORS.view("V3").reshape(-1)[key].view(np.uint8).reshape(height, width, 3)
-
-
-_EVENT_COLORS = np.asarray([[255, 255, 255], [0, 0, 255], [255, 0, 0]], np.uint8)
-"""`events_color`'s colours: no net polarity (white), net positive (blue), net negative (red)."""
+    # Each pixel's negative and positive events counted in one integer pass (slot 2 i + polarity),
+    # then one uint8 plane per channel: R = 255 unless net positive, G = 255 where no net
+    # polarity, B = 255 unless net negative.
+    slot = idx * 2
+    slot += pol
+    counts = np.bincount(slot, minlength=2 * width * height).reshape(height, width, 2)
+    pos, neg = counts[..., 1] > counts[..., 0], counts[..., 1] < counts[..., 0]
+    out = np.empty((height, width, 3), np.uint8)
+    out[..., 0] = (~pos).view(np.uint8) * np.uint8(255)
+    out[..., 1] = (~(pos | neg)).view(np.uint8) * np.uint8(255)
+    out[..., 2] = (~neg).view(np.uint8) * np.uint8(255)
+    return out

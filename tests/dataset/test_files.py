@@ -100,6 +100,27 @@ def test_events_color_is_the_net_polarity_per_pixel():
     assert img[1, 2].tolist() == [255, 255, 255] and img[1, 0].tolist() == [255, 255, 255]  # net 0, none
 
 
+@pytest.mark.parametrize("tonic", [False, True])
+def test_events_color_equals_its_jax_twin(tonic):
+    """The host rendering equals `jaxfish.groundtruth.events_to_color` on random events, ties,
+    and (tonic's signed coordinates) events outside the image on every side."""
+    from jaxfish.groundtruth import events_to_color
+    from jaxfish.io._events import TONIC_EVENT_DTYPE
+
+    rng = np.random.default_rng(3)
+    n, w, h = 4000, 17, 11
+    ev = np.zeros(n, TONIC_EVENT_DTYPE if tonic else DVS_EVENT_DTYPE)
+    lo = -3 if tonic else 0
+    ev["x"], ev["y"] = rng.integers(lo, w + 3, n), rng.integers(lo, h + 3, n)
+    pol = rng.random(n) < 0.5
+    if tonic:
+        ev["p"] = pol
+    else:
+        ev["pol"] = pol
+    want = np.asarray(events_to_color(ev["x"], ev["y"], pol, width=w, height=h))
+    np.testing.assert_array_equal(events_color(ev, width=w, height=h), want)
+
+
 def test_npz_is_deterministic_and_numpy_readable(tmp_path, monkeypatch):
     arrays = {"events": np.arange(12, dtype=np.int64), "time_unit": np.asarray("us")}
     # A fake clock for each write (the real one is never read): an hour apart, a writer that stamps the
