@@ -23,10 +23,15 @@ def depth_to_color(depth_m: Float[np.ndarray, "H W"]) -> UInt8[np.ndarray, "H W 
     # float32: at most one step of the 1024-step ramp from a float64 computation.
     scale = np.float32(1023.0 / (np.log(hi) - np.log(lo)))
     x = np.float32(1023.0) - (np.log(np.clip(d, np.float32(lo), np.float32(hi))) - np.float32(np.log(lo))) * scale
-    idx = np.clip(np.rint(x), 0, 1023).astype(np.intp)
-    # One 3-byte gather per pixel (a row gather of the (1024, 3) table is slower).
-    out = _depth_ramp().view("V3").reshape(-1)[idx].view(np.uint8).reshape(idx.shape + (3,))
-    out[~((d > 0) & (d < FAR_DEPTH_M - 1.0))] = 0
+    np.rint(x, out=x)
+    np.clip(x, np.float32(0), np.float32(1023), out=x)  # float32 bounds: Python ints take a slow path
+    x[~((d > 0) & (d < FAR_DEPTH_M - 1.0))] = 1024  # the table's black entry (NaN depths included)
+    idx = x.astype(np.int32)
+    # One uint8 gather per channel (a 3-byte gather per pixel is slower).
+    table = _depth_table()
+    out = np.empty(d.shape + (3,), np.uint8)
+    for c in range(3):
+        out[..., c] = table[c].take(idx)
     return out
 
 
@@ -35,6 +40,14 @@ def _depth_ramp() -> np.ndarray:
     """The 1024 x 3 uint8 colour table of `depth_to_color` (far -> near)."""
     ramp = np.linspace(0.0, len(_MAGMA) - 1, 1024)
     return np.rint(np.stack([np.interp(ramp, np.arange(len(_MAGMA)), _MAGMA[:, c]) for c in range(3)], -1)).astype(np.uint8)
+
+
+@functools.cache
+def _depth_table() -> np.ndarray:
+    """`_depth_ramp` channel by channel ``(3, 1025)``, with black at index 1024."""
+    table = np.zeros((3, 1025), np.uint8)
+    table[:, :1024] = _depth_ramp().T
+    return table
 
 
 def events_color(events: np.ndarray, *, width: int, height: int) -> UInt8[np.ndarray, "H W 3"]:

@@ -179,6 +179,7 @@ def test_depth_colors_near_bright_far_dark_sky_black():
     assert c.dtype == np.int64 and c.shape == (1, 5, 3)
     lum = c[0].sum(-1)
     assert lum[0] > lum[1] > lum[2] > 0 and lum[3] == 0 and lum[4] == 0
+    assert not depth_to_color(np.asarray([np.nan, -1.0, np.inf], np.float32)).any()  # any shape; not a depth: black
     # float32 evaluation: within one step of the 1024-step ramp of the float64 formula.
     from jaxfish.pipeline import DEPTH_COLOR_RANGE_M
     from jaxfish.pipeline._render import _depth_ramp
