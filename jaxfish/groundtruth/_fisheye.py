@@ -236,19 +236,28 @@ def view_ground_truth(
     max_candidates: int | None = None,
     surface_samples: int = 12,
     rays: tuple[Float[ArrayLike, "H W 3"], Bool[ArrayLike, "H W"]] | None = None,
+    images_prev: FisheyeImages | None = None,
+    labels_prev: tuple[InstanceMap, Int[Array, "H W"]] | None = None,
 ) -> CameraGroundTruth:
     """The same ground truth as `fisheye_ground_truth` for a camera captured directly (no cube
     faces): the BEV top view (`Orthographic`) or the front perspective camera (`Pinhole`).
     ``view_prev`` / ``view`` carry ``rgb (H, W, 3)``, ``depth_m (H, W)`` (CARLA planar depth along the
     optical axis; for the orthographic view the distance from the image plane) and ``semantic``
-    (CARLA tags); planar depth becomes range along each ray (far stays 1000)."""
+    (CARLA tags); planar depth becomes range along each ray (far stays 1000). ``images_prev``: the
+    view's images at t-1 when already known (a sequence's previous sample computed them as its
+    images at t; ``view_prev`` is then not read); ``labels_prev``: its labels at t-1 likewise
+    (`ground_truth_from_images`)."""
+    if labels_prev is not None and images_prev is None:
+        raise ValueError("view_ground_truth: labels_prev needs images_prev (the images they were computed from)")
     rays = _jit_rays(camera) if rays is None else (jnp.asarray(rays[0], jnp.float32), jnp.asarray(rays[1], bool))
-    img_p = _jit_view_images(camera, rays, *(jnp.asarray(getattr(view_prev, k)) for k in ("rgb", "depth_m", "semantic")))
+    img_p = images_prev if images_prev is not None else \
+        _jit_view_images(camera, rays, *(jnp.asarray(getattr(view_prev, k)) for k in ("rgb", "depth_m", "semantic")))
     img = _jit_view_images(camera, rays, *(jnp.asarray(getattr(view, k)) for k in ("rgb", "depth_m", "semantic")))
     return ground_truth_from_images(
         camera, rays, img_p, img, camera_to_vehicle, boxes_prev, boxes, vehicle_to_world_prev, vehicle_to_world,
         carla_version=carla_version, motion_threshold_m=motion_threshold_m, backward_flow=backward_flow,
-        margin_m=margin_m, fallback_m=fallback_m, max_candidates=max_candidates, surface_samples=surface_samples)
+        margin_m=margin_m, fallback_m=fallback_m, max_candidates=max_candidates, surface_samples=surface_samples,
+        labels_prev=labels_prev)
 
 
 @jax.jit

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import threading
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -195,9 +195,11 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
     known = labels = None
     if sequential:
         # What the labels at t depend on besides the images: the boxes, the ego pose, the options.
-        inputs_prev = _LabelInputs(per_sample[0], per_sample[2], frames[0].carla_tags, options)
-        known = [_LAST_IMAGES.images_prev(k, cf.faces_prev) for k, cf in zip(cams, frames[0].camera_frames, strict=True)]
-        labels = [None if im is None else _LAST_IMAGES.labels_prev(k, inputs_prev) for k, im in zip(cams, known, strict=True)]
+        known = [_LAST_IMAGES.images_prev(k.name, k.lut, cf.faces_prev)
+                 for k, cf in zip(cams, frames[0].camera_frames, strict=True)]
+        labels = [None if im is None else _LAST_IMAGES.labels_prev(
+            k.name, _LabelInputs(k, per_sample[0], per_sample[2], frames[0].carla_tags, options))
+            for k, im in zip(cams, known, strict=True)]
     rows = gt.rig_ground_truth(
         [k.lut for k in cams], [k.camera for k in cams], c2v, _Faces(**prev), _Faces(**curr), *per_sample,
         rays=[k.rays for k in cams], carla_version=frames[0].carla_tags, batch=options.batch, stacked=False,
@@ -205,26 +207,28 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
     if n == 1:
         rows = [rows]  # one sample: the list of its cameras
     if sequential:
-        inputs = _LabelInputs(per_sample[1], per_sample[3], frames[0].carla_tags, options)
         for k, cf, truth in zip(cams, frames[0].camera_frames, rows[0], strict=True):
-            _LAST_IMAGES.keep(k, cf.faces, truth.images, (truth.instances, truth.semantic), inputs)
+            _LAST_IMAGES.keep(k.name, k.lut, cf.faces, truth.images, (truth.instances, truth.semantic),
+                              _LabelInputs(k, per_sample[1], per_sample[3], frames[0].carla_tags, options))
     return [[_camera_truth(k.name, k.camera, k.rays, truth, camera_events(cf.events, k.event_map), options.backward_flow)
              for k, cf, truth in zip(cams, f.camera_frames, row, strict=True)]
             for f, row in zip(frames, rows, strict=True)]
 
 
 class _LabelInputs(NamedTuple):
-    """What a camera's labels at one instant depend on besides its images: the boxes and the
-    ego's vehicle -> world pose at that instant (host arrays), the tag table and the options."""
+    """What a camera's labels at one instant depend on besides its images: its constants (camera,
+    mount, rays: the same object), the boxes and the ego's vehicle -> world pose at that instant
+    (host arrays), the tag table and the options."""
 
+    constants: Any
     boxes: Any
     vehicle_to_world: Any
     carla_tags: str
     options: GroundTruthOptions
 
     def same(self, other: _LabelInputs) -> bool:
-        """Whether ``other`` holds the same values, bit for bit."""
-        if (self.carla_tags, self.options) != (other.carla_tags, other.options):
+        """Whether ``other`` holds the same values, bit for bit (the same constants object)."""
+        if self.constants is not other.constants or (self.carla_tags, self.options) != (other.carla_tags, other.options):
             return False
         mine, theirs = (jax.tree_util.tree_flatten((x.boxes, x.vehicle_to_world)) for x in (self, other))
         return mine[1] == theirs[1] and all(_same_bytes(np.asarray(a), np.asarray(b))
@@ -232,45 +236,47 @@ class _LabelInputs(NamedTuple):
 
 
 class _LastImages:
-    """Each camera's last fisheye images at t, with the cube faces they were resampled from, and
-    its labels at t with what they were computed from, so that the next sample of a sequence,
-    whose faces at t-1 are these faces (a byte-exact comparison, never a guess), reuses them as
-    its images at t-1 (the same program on the same faces: the same bits as resampling them
-    again), and its labels at t-1 too when its boxes, ego pose and options at t-1 are these.
-    Only read-only faces are kept (a reader's kept decodes, the embedded scene's renders, JAX
-    arrays): a writable array could change before the next sample. One entry per camera name;
-    thread-safe."""
+    """Each camera's last images at t (a fisheye's `FisheyeImages`, or a directly captured view's),
+    with the arrays they were computed from (cube faces, or the view's `ViewImages`), and its
+    labels at t with what they were computed from, so that the next sample of a sequence, whose
+    inputs at t-1 are these arrays (a byte-exact comparison, never a guess), reuses them as its
+    images at t-1 (the same program on the same arrays: the same bits as computing them again),
+    and its labels at t-1 too when its `_LabelInputs` at t-1 are these. Only read-only arrays are
+    kept (a reader's kept decodes, the embedded scene's renders, JAX arrays): a writable array
+    could change before the next sample. One entry per camera (its name; `_BEV` for the top
+    view), valid for one ``source`` object (a fisheye's LUT, the view's rays); thread-safe."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._kept: dict[str, tuple] = {}
+        self._kept: dict[Hashable, tuple] = {}
 
-    def keep(self, k, faces, images: gt.FisheyeImages, labels: tuple, inputs: _LabelInputs) -> None:
-        arrays = tuple(np.asarray(getattr(faces, f)) for f in _FACE_FIELDS)
+    def keep(self, name: Hashable, source, arrays, images, labels: tuple, inputs: _LabelInputs) -> None:
+        kept = tuple(np.asarray(getattr(arrays, f)) for f in _FACE_FIELDS)
         with self._lock:
-            if any(a.flags.writeable for a in arrays):
-                self._kept.pop(k.name, None)
+            if any(a.flags.writeable for a in kept):
+                self._kept.pop(name, None)
             else:
-                self._kept[k.name] = (k.lut, arrays, images, labels, inputs)
+                self._kept[name] = (source, kept, images, labels, inputs)
 
-    def images_prev(self, k, faces_prev) -> gt.FisheyeImages | None:
-        """The kept images at t when ``faces_prev`` equals the faces they came from, else None."""
-        kept = self._get(k)
+    def images_prev(self, name: Hashable, source, arrays_prev):
+        """The kept images at t when ``arrays_prev`` equal the arrays they came from, else None."""
+        kept = self._get(name, source)
         if kept is None:
             return None
-        now = tuple(np.asarray(getattr(faces_prev, f)) for f in _FACE_FIELDS)
+        now = tuple(np.asarray(getattr(arrays_prev, f)) for f in _FACE_FIELDS)
         return kept[2] if all(_same_bytes(a, b) for a, b in zip(kept[1], now, strict=True)) else None
 
-    def labels_prev(self, k, inputs_prev: _LabelInputs) -> tuple | None:
+    def labels_prev(self, name: Hashable, inputs_prev: _LabelInputs) -> tuple | None:
         """The kept labels at t when ``inputs_prev`` equals what they were computed from, else
         None (call it only for a camera whose kept images `images_prev` returned)."""
-        kept = self._get(k)
+        with self._lock:
+            kept = self._kept.get(name)
         return kept[3] if kept is not None and kept[4].same(inputs_prev) else None
 
-    def _get(self, k) -> tuple | None:
+    def _get(self, name: Hashable, source) -> tuple | None:
         with self._lock:
-            kept = self._kept.get(k.name)
-        return kept if kept is not None and kept[0] is k.lut else None
+            kept = self._kept.get(name)
+        return kept if kept is not None and kept[0] is source else None
 
     def clear(self) -> None:
         with self._lock:
@@ -291,6 +297,7 @@ def _same_bytes(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 _LAST_IMAGES = _LastImages()
+_BEV = ("top view",)  # the BEV's entry: no camera name (a string) equals it
 
 
 def forget_last_images() -> None:
@@ -312,9 +319,15 @@ def bev_truth(frame: Frame, constants: RigConstants, options: GroundTruthOptions
         raise ValueError(f"frame {frame.index}: no BEV top view in the {'frame' if frame.bev is None else 'rig constants'}")
     k, view = constants.bev, frame.bev
     m = frame.motion
+    # A sequence's next frame reuses the view's images and labels at t-1 (see `_LastImages`).
+    known = _LAST_IMAGES.images_prev(_BEV, k.rays, view.images_prev)
+    labels = None if known is None else _LAST_IMAGES.labels_prev(
+        _BEV, _LabelInputs(k, m.boxes_prev, m.vehicle_to_world_prev, frame.carla_tags, options))
     truth = gt.view_ground_truth(k.camera, k.camera_to_vehicle, view.images_prev, view.images, m.boxes_prev, m.boxes,
                                  m.vehicle_to_world_prev, m.vehicle_to_world, carla_version=frame.carla_tags,
-                                 rays=k.rays, **options.ground_truth_keywords())
+                                 rays=k.rays, images_prev=known, labels_prev=labels, **options.ground_truth_keywords())
+    _LAST_IMAGES.keep(_BEV, k.rays, view.images, truth.images, (truth.instances, truth.semantic),
+                      _LabelInputs(k, m.boxes, m.vehicle_to_world, frame.carla_tags, options))
     if view.height_m is not None:
         height = np.asarray(view.height_m, np.float32)
     else:
@@ -390,6 +403,7 @@ def sample_truth(frame: Frame, constants: RigConstants, options: GroundTruthOpti
     byte for byte and read-only (`jaxfish.dataset.CaptureSource` and `jaxfish.dataset.EmbeddedSource`
     give such frames), takes them as its images at t-1 instead of resampling them; when its boxes
     and ego pose at t-1 are also those at t of the kept frame (bit for bit) and the options the
-    same, it takes the kept instances and semantics as its labels at t-1 as well. The results
-    are the same bits either way."""
+    same, it takes the kept instances and semantics as its labels at t-1 as well. The BEV top
+    view's images and labels are kept and reused the same way. The results are the same bits
+    either way."""
     return sample_truths([frame], constants, options)[0]

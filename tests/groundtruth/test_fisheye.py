@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jaxfish import groundtruth as gt
 
@@ -61,3 +62,8 @@ def test_view_ground_truth_on_a_pinhole_view(sample):
     assert np.all(np.isfinite(np.asarray(t.flow.flow))) and np.asarray(t.flow.valid).mean() > 0.3  # 0.8 m forward: the near ground leaves a 90-degree view
     sky = np.asarray(sample.faces.semantic[0]) == 13
     assert np.all(np.asarray(t.images.range_m)[sky] == 1000.0)
+
+
+def test_view_labels_at_t_minus_1_need_their_images():
+    with pytest.raises(ValueError, match="labels_prev needs images_prev"):
+        gt.view_ground_truth(None, None, None, None, None, None, None, None, labels_prev=(None, None))
