@@ -201,8 +201,10 @@ def ground_truth_from_images(
     if labels_prev is not None:
         labels.insert(0, labels_prev)
     (inst_p, sem_p), (inst, sem) = labels
-    return _jit_from_labels(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes, (inst_p, sem_p, inst, sem),
-                            float(motion_threshold_m), bool(backward_flow), int(surface_samples))
+    labels = (inst_p, sem_p, inst, sem)
+    rest = _jit_motion_flow_boxes(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes, labels,
+                                  float(motion_threshold_m), bool(backward_flow), int(surface_samples))
+    return _camera_truth(images_prev, images, labels, rest)  # the inputs as they are: no copies
 
 
 def rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates, surface_samples,
@@ -392,7 +394,18 @@ def truth_from_labels(camera: AbstractCamera, rays: tuple[Float[Array, "H W 3"],
     """The rest of `ground_truth_from_plan` from its ``labels`` (`labels_from_plan`'s; the
     arguments from ``motion_threshold_m`` on static): motion, flow and 2D boxes. Independent of
     the planning stage's sizes, so that one compiled program serves every camera of a rig."""
-    inst_p, sem_p, inst, sem = labels
+    rest = _motion_flow_boxes(camera, rays, img_p, img, c2w_p, c2w, boxes_prev, boxes, labels, motion_threshold_m,
+                              backward_flow, surface_samples)
+    return _camera_truth(img_p, img, labels, rest)
+
+
+def _motion_flow_boxes(camera, rays, img_p: FisheyeImages, img: FisheyeImages, c2w_p: Pose, c2w: Pose,
+                       boxes_prev: Boxes3D, boxes: Boxes3D, labels: tuple, motion_threshold_m: float,
+                       backward_flow: bool, surface_samples: int) -> tuple:
+    """What `truth_from_labels` computes: ``(motion, displacements, flow, backward flow or None,
+    2D boxes, full 2D boxes)``. Its compiled program returns only these: an input handed back
+    as an output would be copied into a buffer of its own."""
+    inst_p, _, inst, _ = labels
     disp = box_displacements(boxes_prev, boxes)
     motion = motion_segmentation(inst.box_index, disp, boxes.class_id, threshold_m=motion_threshold_m)
     fwd_motion = rigid_motion(boxes_prev.box_to_world, boxes.box_to_world)
@@ -405,6 +418,12 @@ def truth_from_labels(camera: AbstractCamera, rays: tuple[Float[Array, "H W 3"],
                              valid=img.valid, rays=rays)
     b2d = boxes_from_instances(inst.box_index, boxes.num_boxes)
     full = boxes_from_surfaces(boxes, camera, c2w.inverse(), samples=surface_samples)
+    return motion, disp, flow, back, b2d, full
+
+
+def _camera_truth(img_p: FisheyeImages, img: FisheyeImages, labels: tuple, rest: tuple) -> CameraGroundTruth:
+    inst_p, sem_p, inst, sem = labels
+    motion, disp, flow, back, b2d, full = rest
     return CameraGroundTruth(
         images_prev=img_p, images=img, semantic_prev=sem_p, semantic=sem, instances_prev=inst_p, instances=inst,
         motion=motion, displacement_m=disp, flow=flow, flow_backward=back, boxes_2d=b2d, boxes_2d_full=full,
@@ -412,4 +431,4 @@ def truth_from_labels(camera: AbstractCamera, rays: tuple[Float[Array, "H W 3"],
 
 
 _jit_instant_labels = jax.jit(instant_labels, static_argnums=tuple(range(4, 10)))
-_jit_from_labels = jax.jit(truth_from_labels, static_argnums=(9, 10, 11))
+_jit_motion_flow_boxes = jax.jit(_motion_flow_boxes, static_argnums=(9, 10, 11))
