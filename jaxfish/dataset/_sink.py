@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import os
 import pickle
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,7 @@ from ..io import (
     write_label_png,
     write_png_with_metadata,
 )
+from ..io._images import png_image_bytes
 from ..pipeline import (
     RADAR_VEHICLE_DTYPE,
     SEMANTIC_LIDAR_VEHICLE_DTYPE,
@@ -77,8 +79,10 @@ def write_camera_files(root: Path, sample: str, cam: CameraTruth, *, motion_thre
     out: list[Path] = []
     add = out.append
     h, w = np.asarray(t.images.valid).shape
-    add(write_image(root / "rgb_images" / f"{stem}.png", np.asarray(t.images.rgb), png_level=png_level))
-    add(write_image(root / "previous_images" / f"{stem}_prev.png", np.asarray(t.images_prev.rgb), png_level=png_level))
+    # t-1 first: it may be the kept image at t of the previous sample, which t then replaces.
+    prev = _LAST_RGB.write(root / "previous_images" / f"{stem}_prev.png", cam.name, t.images_prev.rgb, png_level)
+    add(_LAST_RGB.write(root / "rgb_images" / f"{stem}.png", cam.name, t.images.rgb, png_level, keep=True))
+    add(prev)
     rng = np.asarray(t.images.range_m, np.float32)
     add(write_depth_npy(root / "depth_maps" / "raw_data" / f"{stem}.npy", rng))
     add(write_depth_exr(root / "depth_maps" / "exr" / f"{stem}.exr", rng, RANGE_DEPTH_DEFINITION))
@@ -110,6 +114,39 @@ def write_camera_files(root: Path, sample: str, cam: CameraTruth, *, motion_thre
         add(write_events_tonic(root / "dvs_signals" / "tonic" / f"{stem}.npz", ev, width=w, height=h))
         add(write_image(root / "dvs_signals" / "color_coded" / f"{stem}.png", cam.events_rgb, png_level=png_level))
     return out
+
+
+class _LastRgb:
+    """Each camera's last RGB image at t with its PNG bytes, so that the next sample of a sequence,
+    whose images at t-1 are those images (the same array object: `jaxfish.pipeline.sample_truth`
+    hands a sequence's images at t on), writes them as its ``previous_images`` file without
+    encoding them again: the bytes `write_image` would write. One entry per camera name;
+    thread-safe (samples written at once by several threads at worst encode again)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._kept: dict[str, tuple] = {}
+
+    def write(self, path: Path, camera: str, rgb, png_level: int, *, keep: bool = False) -> Path:
+        """Write ``rgb`` as the PNG ``path`` (atomic), from the kept bytes when ``rgb`` is the
+        camera's kept image at this level; ``keep``: keep ``rgb`` and its bytes for the next sample."""
+        with self._lock:
+            kept = self._kept.get(camera)
+        if kept is not None and kept[0] is rgb and kept[1] == png_level:
+            data = kept[2]
+        else:
+            data = png_image_bytes(path, np.asarray(rgb), png_level=png_level)
+        if keep:
+            with self._lock:
+                self._kept[camera] = (rgb, png_level, data)
+        return atomic_write_bytes(path, data)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._kept.clear()
+
+
+_LAST_RGB = _LastRgb()
 
 
 def write_flow_masks(folder: Path, stem: str, field, *, png_level: int) -> list[Path]:

@@ -132,6 +132,51 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
     timestamp is stored: the same arguments always give the same bytes. Atomic: on any error
     nothing is left at ``path``."""
     path = Path(path)
+    a, meta = _prepared(path, pixels, metadata, png_level, channel_names)
+    if path.suffix.lower() == ".png":
+        data = encode_png(a, text=meta, png_level=png_level, where=str(path))
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(data)
+        return path
+    h, w, c = a.shape
+    ext = path.suffix.lower()
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise ImageError(f"{path}: cannot create writer ({oiio.geterror()})")
+        spec = oiio.ImageSpec(w, h, c, _DTYPES[a.dtype])
+        if channel_names is not None:
+            spec.channelnames = tuple(str(n) for n in channel_names)
+        if ext == ".exr":
+            spec.attribute("compression", exr_compression)
+        spec.attribute("oiio:UnassociatedAlpha", 1)  # the pixels are written as given
+        spec.attribute("DateTime", "")  # no timestamp (OpenEXR's capDate): the same pixels give the same bytes
+        for name, value in meta.items():
+            spec.attribute(name, value)
+        if not out.open(str(tmp), spec):
+            raise ImageError(f"{path}: cannot open for writing ({out.geterror()})")
+        ok = out.write_image(a)
+        out.close()
+        if not ok:
+            raise ImageError(f"{path}: write failed ({out.geterror()})")
+    return path
+
+
+def png_image_bytes(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mapping[str, Any] | None = None,
+                    png_level: int = PNG_LEVEL) -> bytes:
+    """The bytes `write_image` writes to the ``.png`` file ``path`` for ``pixels``, ``metadata``
+    and ``png_level`` (nothing is written; ``path`` names the file in errors)."""
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise ImageError(f"{path}: png_image_bytes encodes PNG files, got extension {path.suffix!r}")
+    a, meta = _prepared(path, pixels, metadata, png_level, None)
+    return encode_png(a, text=meta, png_level=png_level, where=str(path))
+
+
+def _prepared(path: Path, pixels: np.ndarray, metadata: Mapping[str, Any] | None, png_level: int,
+              channel_names: Sequence[str] | None) -> tuple[np.ndarray, dict[str, str]]:
+    """`write_image`'s checks: ``(H, W, C)`` C-contiguous pixels in a writable dtype and the
+    metadata as JSON text, or `ImageError` naming the file."""
     ext = path.suffix.lower()
     if ext not in _WRITABLE:
         raise ImageError(f"{path}: unsupported image extension {ext!r} (use .png or .exr)")
@@ -156,31 +201,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
         raise ImageError(f"{path}: {len(channel_names)} channel names for {c} channels")
     meta = {name: to_json_text(f"{path} (metadata {name!r})", value, error=ImageError).rstrip("\n")
             for name, value in (metadata or {}).items()}
-    if ext == ".png":
-        data = encode_png(a, text=meta, png_level=png_level, where=str(path))
-        with atomic_path(path) as tmp:
-            tmp.write_bytes(data)
-        return path
-    with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None:
-            raise ImageError(f"{path}: cannot create writer ({oiio.geterror()})")
-        spec = oiio.ImageSpec(w, h, c, _DTYPES[a.dtype])
-        if channel_names is not None:
-            spec.channelnames = tuple(str(n) for n in channel_names)
-        if ext == ".exr":
-            spec.attribute("compression", exr_compression)
-        spec.attribute("oiio:UnassociatedAlpha", 1)  # the pixels are written as given
-        spec.attribute("DateTime", "")  # no timestamp (OpenEXR's capDate): the same pixels give the same bytes
-        for name, value in meta.items():
-            spec.attribute(name, value)
-        if not out.open(str(tmp), spec):
-            raise ImageError(f"{path}: cannot open for writing ({out.geterror()})")
-        ok = out.write_image(a)
-        out.close()
-        if not ok:
-            raise ImageError(f"{path}: write failed ({out.geterror()})")
-    return path
+    return a, meta
 
 
 def read_image_metadata(path: str | os.PathLike, name: str) -> Any:

@@ -121,6 +121,29 @@ def test_events_color_equals_its_jax_twin(tonic):
     np.testing.assert_array_equal(events_color(ev, width=w, height=h), want)
 
 
+def test_a_sequence_writes_its_previous_images_from_the_kept_png(tmp_path, monkeypatch):
+    """The RGB at t is kept with its PNG bytes; the next sample's image at t-1, the same array,
+    is written from them: `write_image`'s bytes, no second encode. Another array (even with
+    equal pixels) or another level is encoded."""
+    from jaxfish.dataset import _sink
+    from jaxfish.io import write_image
+
+    encodes = []
+    encode = _sink.png_image_bytes
+    monkeypatch.setattr(_sink, "png_image_bytes", lambda *a, **k: (encodes.append(1), encode(*a, **k))[1])
+    last = _sink._LastRgb()
+    rgb = np.random.default_rng(0).integers(0, 256, (9, 7, 3), dtype=np.uint8)
+    last.write(tmp_path / "t.png", "FV", rgb, 1, keep=True)
+    last.write(tmp_path / "prev.png", "FV", rgb, 1)
+    assert len(encodes) == 1
+    expected = write_image(tmp_path / "ref.png", rgb, png_level=1).read_bytes()
+    assert (tmp_path / "t.png").read_bytes() == (tmp_path / "prev.png").read_bytes() == expected
+    for other, level in ((rgb.copy(), 1), (rgb, 2)):
+        last.write(tmp_path / "x.png", "FV", other, level)
+    last.write(tmp_path / "y.png", "MVL", rgb, 1)
+    assert len(encodes) == 4
+
+
 def test_npz_is_deterministic_and_numpy_readable(tmp_path, monkeypatch):
     arrays = {"events": np.arange(12, dtype=np.int64), "time_unit": np.asarray("us")}
     # A fake clock for each write (the real one is never read): an hour apart, a writer that stamps the
