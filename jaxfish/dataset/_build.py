@@ -52,7 +52,7 @@ from ._runtime import (
     use_compile_cache,
 )
 from ._shards import SHARD_FORMAT, SHARD_RULE, SHARDS_DIR, Shard, as_shard, remove_shard_records, source_origin
-from ._sink import LayoutSink, write_sensor_files
+from ._sink import _LAST_RGB, LayoutSink, write_sensor_files
 from ._sources import CaptureSource, FrameSource, as_source
 
 _NO_VALUE = object()
@@ -84,14 +84,15 @@ def rig_constants_of(source) -> RigConstants:
 
 def clear_worker_cache() -> None:
     """Forget the per-calibration constants (LUTs, rays) this process has built, the source its
-    dask tasks share (`_kept_source`) and the fisheye images kept for the next sample of a sequence
-    (`jaxfish.pipeline.forget_last_images`)."""
+    dask tasks share (`_kept_source`), and the images, labels and RGB PNGs kept for the next
+    sample of a sequence (`jaxfish.pipeline.forget_last_images`, the sink's)."""
     from ..pipeline import forget_last_images
 
     with _CACHE_LOCK:
         _CACHE.clear()
         _KEPT.clear()
     forget_last_images()
+    _LAST_RGB.clear()
 
 
 _KEPT: list[tuple[bytes, Any]] = []

@@ -194,7 +194,6 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
     sequential = n == 1 and resolve_batch_mode(options.batch) == "loop"
     known = labels = None
     if sequential:
-        # What the labels at t depend on besides the images: the boxes, the ego pose, the options.
         known = [_LAST_IMAGES.images_prev(k.name, k.lut, cf.faces_prev)
                  for k, cf in zip(cams, frames[0].camera_frames, strict=True)]
         labels = [None if im is None else _LAST_IMAGES.labels_prev(
@@ -301,7 +300,8 @@ _BEV = ("top view",)  # the BEV's entry: no camera name (a string) equals it
 
 
 def forget_last_images() -> None:
-    """Drop the fisheye images and labels `sample_truth` keeps for the next sample of a sequence."""
+    """Drop the images and labels (fisheyes and the BEV view) `sample_truth` keeps for the next
+    sample of a sequence."""
     _LAST_IMAGES.clear()
 
 

@@ -142,6 +142,16 @@ def test_a_sequence_writes_its_previous_images_from_the_kept_png(tmp_path, monke
         last.write(tmp_path / "x.png", "FV", other, level)
     last.write(tmp_path / "y.png", "MVL", rgb, 1)
     assert len(encodes) == 4
+    last.clear()
+    last.write(tmp_path / "prev.png", "FV", rgb, 1)
+    assert len(encodes) == 5
+    # A worker's caches are dropped together (`clear_worker_cache`).
+    from jaxfish.dataset import clear_worker_cache
+
+    _sink._LAST_RGB.write(tmp_path / "z.png", "FV", rgb, 1, keep=True)
+    clear_worker_cache()
+    _sink._LAST_RGB.write(tmp_path / "z.png", "FV", rgb, 1)
+    assert len(encodes) == 7
 
 
 def test_npz_is_deterministic_and_numpy_readable(tmp_path, monkeypatch):
