@@ -181,7 +181,8 @@ def ground_truth_from_images(
 ) -> CameraGroundTruth:
     """`fisheye_ground_truth` from the camera's images at t-1 and t (`fisheye_images`, or a
     directly captured view's): per instant `instant_plan` and `instant_labels` (one host round
-    trip between them for the static sizes, `rest_statics`), then `truth_from_labels`.
+    trip between them for the static sizes, `rest_statics`), then `truth_from_labels` (its
+    compiled motion, flow and boxes, with the images and labels passed through as they are).
     ``rays``: the camera's float32 `pixel_rays`; the options are `fisheye_ground_truth`'s.
     ``labels_prev``: ``(instances, semantic)`` at t-1 when already known for these images,
     boxes, poses and options (a sequence's previous sample computed them as its labels at t:
