@@ -52,7 +52,7 @@ from ._runtime import (
     use_compile_cache,
 )
 from ._shards import SHARD_FORMAT, SHARD_RULE, SHARDS_DIR, Shard, as_shard, remove_shard_records, source_origin
-from ._sink import _LAST_RGB, LayoutSink, write_sensor_files
+from ._sink import LayoutSink, forget_last_rgb, write_sensor_files
 from ._sources import CaptureSource, FrameSource, as_source
 
 _NO_VALUE = object()
@@ -92,7 +92,7 @@ def clear_worker_cache() -> None:
         _CACHE.clear()
         _KEPT.clear()
     forget_last_images()
-    _LAST_RGB.clear()
+    forget_last_rgb()
 
 
 _KEPT: list[tuple[bytes, Any]] = []

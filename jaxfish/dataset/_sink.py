@@ -149,6 +149,11 @@ class _LastRgb:
 _LAST_RGB = _LastRgb()
 
 
+def forget_last_rgb() -> None:
+    """Drop the RGB images and PNG bytes the sink keeps for the next sample of a sequence."""
+    _LAST_RGB.clear()
+
+
 def write_flow_masks(folder: Path, stem: str, field, *, png_level: int) -> list[Path]:
     """A flow field's masks (`jaxfish.groundtruth.FlowField`), uint8 PNGs 0 / 255 on the source
     grid: ``{folder}/valid_mask/{stem}.png`` (`FlowField.valid`: seen at both instants and inside
