@@ -193,15 +193,13 @@ def ground_truth_from_images(
     reach = max(margin_m, fallback_m)
     todo = [(images, c2w, boxes)] if labels_prev is not None else [(images_prev, c2w_p, boxes_prev), (images, c2w, boxes)]
     plans = [_jit_instant_plan(camera, rays, im, c2w_, bx, carla_version, reach) for im, c2w_, bx in todo]
-    labels = []
+    per_instant = [] if labels_prev is None else [labels_prev]
     for (im, _, bx), (k_host, n_host, m_host, cand, points) in zip(todo, plans, strict=True):
         statics = rest_statics(carla_version, motion_threshold_m, backward_flow, margin_m, fallback_m, max_candidates,
                                surface_samples, k_host, n_host, m_host)
         version, _, _, margin, fallback, k, capacity, many, _ = statics
-        labels.append(_jit_instant_labels(im, bx, cand, points, version, margin, fallback, k, capacity, many))
-    if labels_prev is not None:
-        labels.insert(0, labels_prev)
-    (inst_p, sem_p), (inst, sem) = labels
+        per_instant.append(_jit_instant_labels(im, bx, cand, points, version, margin, fallback, k, capacity, many))
+    (inst_p, sem_p), (inst, sem) = per_instant
     labels = (inst_p, sem_p, inst, sem)
     rest = _jit_motion_flow_boxes(camera, rays, images_prev, images, c2w_p, c2w, boxes_prev, boxes, labels,
                                   float(motion_threshold_m), bool(backward_flow), int(surface_samples))
