@@ -239,10 +239,49 @@ def _decoded_reusing(path: Path, key: tuple[str, ...], instant: str, decode, *, 
     return arr
 
 
+# A camera's last ``curr`` face stacks decoded by `CaptureReader.faces_stacks` (rgb, depth,
+# semantic; read-only), by ``(capture, camera)``: the arrays `_LAST_CURR` keeps for its faces are
+# views of them.
+_LAST_STACKS: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+_STACK_KINDS = ("rgb", "depth", "semantic")
+
+
+def _is_face_of(arr: np.ndarray, stack: np.ndarray, i: int) -> bool:
+    """Whether ``arr`` is face ``i`` of ``stack`` (the same memory, shape and strides)."""
+    face = stack[i]
+    return arr.shape == face.shape and arr.strides == face.strides and arr.ctypes.data == face.ctypes.data
+
+
+def _kept_stacks(key: tuple[str, ...], directories: Sequence[Path]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The kept ``curr`` stacks of the camera ``key`` when every ``{kind}_prev.png`` in its face
+    ``directories`` (in stack order) is a byte copy of the ``curr`` file its face was decoded from
+    (an exact comparison of the bytes), else None."""
+    with _LAST_CURR_LOCK:
+        stacks = _LAST_STACKS.get(key)
+        hits = [[_LAST_CURR.get(key[:-1] + (key[-1], d.name, kind)) for kind in _STACK_KINDS] for d in directories]
+    if stacks is None:
+        return None
+    for i, (directory, face_hits) in enumerate(zip(directories, hits, strict=True)):
+        for kind, hit, stack in zip(_STACK_KINDS, face_hits, stacks, strict=True):
+            if hit is None or not _is_face_of(hit[1], stack, i):
+                return None
+            path = directory / f"{kind}_prev.png"
+            try:
+                regular_file(path, ImageError, "image file")
+                data = path.read_bytes()
+            except (OSError, ImageError):
+                return None  # decoded one face at a time, whose errors name the file
+            if data != hit[0]:
+                return None
+    return stacks
+
+
 def forget_decoded_images() -> None:
     """Drop the decoded images `CaptureReader` keeps with ``reuse_decoded=True`` (frees ~150 MB)."""
     with _LAST_CURR_LOCK:
         _LAST_CURR.clear()
+        _LAST_STACKS.clear()
 
 
 def _pose_dict(pose) -> dict[str, Any]:
@@ -606,11 +645,24 @@ class CaptureReader:
         ``face_size`` the RGB, depth and semantic images are decoded straight into the stacks, which
         are returned read-only (JAX programs read these aligned arrays in place, without a copy, so
         they must not change while a computation on them may still run); without it each face is
-        decoded alone, then stacked."""
+        decoded alone, then stacked. With ``reuse_decoded``, a ``prev`` view whose RGB, depth and
+        semantic files are all byte copies of the ``curr`` files this reader last decoded into a
+        camera's stacks returns those stacks themselves (the same read-only arrays, nothing
+        decoded or copied)."""
         size = self.meta.get("face_size")
         n = len(self.faces)
-        stacks = {v: None if size is None else face_stacks(n, int(size)) for v in views}
-        jobs = [(v, i) for v in views for i in range(n)]
+        kept: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray] | None] = {}
+        prev = [v for v in views if v[1] == "prev"] if size is not None and self._reuse_key is not None else []
+        if prev:  # a camera whose prev files are byte copies of the curr files it last decoded: its curr stacks
+            def check(view: tuple[str, str]):
+                camera = view[0]
+                return _kept_stacks(self._reuse_key + (camera,),
+                                    [self._frame(frame) / "cameras" / camera / f for f in self.faces])
+            with concurrent.futures.ThreadPoolExecutor(max(1, min(len(prev), decode_threads()))) as pool:
+                kept = dict(zip(prev, pool.map(check, prev), strict=True))
+        todo = [v for v in views if kept.get(v) is None]
+        stacks = {v: None if size is None else face_stacks(n, int(size)) for v in todo}
+        jobs = [(v, i) for v in todo for i in range(n)]
 
         def read(job: tuple[tuple[str, str], int]) -> CameraImages:
             (camera, instant), i = job
@@ -620,16 +672,24 @@ class CaptureReader:
 
         with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, decode_threads()))) as pool:
             imgs = dict(zip(jobs, pool.map(read, jobs), strict=True))
+            if actor_ids and any(kept.values()):  # the instance PNGs of the kept views
+                ids = [(v, i) for v in views if kept.get(v) is not None for i in range(n)]
+                imgs.update(zip(ids, pool.map(lambda job: self.face(frame, job[0][0], self.faces[job[1]], "prev",
+                                                                    out=None), ids), strict=True))
         result = {}
         for v in views:
-            faces = [imgs[(v, i)] for i in range(n)]
-            out = stacks[v]
+            faces = [imgs[(v, i)] for i in range(n)] if (v in stacks or actor_ids) else []
+            out = kept.get(v) or stacks[v]
             if out is None:
                 out = tuple(np.stack([getattr(f, k) for f in faces]) for k in ("rgb", "depth_m", "semantic"))
-            else:  # kept for later readers with ``reuse_decoded`` (`read_images`'s ``reuse``); read in place by JAX
+            elif v in stacks:  # kept for later readers with ``reuse_decoded`` (`read_images`'s ``reuse``); read in place by JAX
                 for a in out:
                     a.setflags(write=False)
-            result[v] = CameraImages(*out, None if faces[0].actor_id is None else np.stack([f.actor_id for f in faces]))
+                if v[1] == "curr" and self._reuse_key is not None:
+                    with _LAST_CURR_LOCK:
+                        _LAST_STACKS[self._reuse_key + (v[0],)] = out
+            ids = None if not faces or faces[0].actor_id is None else np.stack([f.actor_id for f in faces])
+            result[v] = CameraImages(*out, ids)
         return result
 
     def dvs(self, frame: int, camera: str, face: str) -> np.ndarray:

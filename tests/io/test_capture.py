@@ -173,6 +173,45 @@ def test_reuse_decoded_prev_images_that_copy_the_previous_curr(tmp_path, capture
     forget_decoded_images()
 
 
+def test_faces_stacks_hand_on_the_curr_stacks_that_a_prev_view_copies(tmp_path, capture):
+    """With ``reuse_decoded``, a camera whose prev files all copy the curr files of its last
+    decoded stacks gets those stacks (the same arrays); one face that is no copy decodes the view."""
+    import shutil
+
+    from jaxfish.io import forget_decoded_images
+
+    root, *_ = capture
+    copy = tmp_path / "cap"
+    shutil.copytree(root, copy)
+    reader, plain = CaptureReader(copy, reuse_decoded=True), CaptureReader(copy)
+    for cam in ("FV", "MVL"):
+        for face in reader.faces:
+            for kind in ("rgb", "depth", "semantic"):  # frame 1's t-1 = frame 0's t
+                shutil.copyfile(copy / f"frames/000000/cameras/{cam}/{face}/{kind}_curr.png",
+                                copy / f"frames/000001/cameras/{cam}/{face}/{kind}_prev.png")
+    last = reader.faces[-1]  # MVL: one face's depth is no copy
+    shutil.copyfile(copy / f"frames/000001/cameras/MVL/{last}/depth_curr.png", copy / f"frames/000001/cameras/MVL/{last}/depth_prev.png")
+    forget_decoded_images()
+    views = [("FV", "prev"), ("MVL", "prev"), ("FV", "curr"), ("MVL", "curr")]
+    frame0 = reader.faces_stacks(0, views, actor_ids=False)
+    for actor_ids in (False, True):
+        frame1 = reader.faces_stacks(1, views, actor_ids=actor_ids)
+        for cam in ("FV", "MVL"):
+            want = plain.faces_stacks(1, [(cam, "prev")])[(cam, "prev")]
+            got = frame1[(cam, "prev")]
+            for k in ("rgb", "depth_m", "semantic"):
+                assert (getattr(got, k) is getattr(frame0[(cam, "curr")], k)) == (cam == "FV")
+                assert not getattr(got, k).flags.writeable
+                np.testing.assert_array_equal(getattr(got, k), getattr(want, k))
+            if actor_ids:
+                np.testing.assert_array_equal(got.actor_id, want.actor_id)
+            else:
+                assert got.actor_id is None
+        frame0 = {(c, "curr"): reader.faces_stacks(0, [(c, "curr")], actor_ids=False)[(c, "curr")] for c in ("FV", "MVL")}
+    forget_decoded_images()
+    assert reader.faces_stacks(1, [("FV", "prev")])[("FV", "prev")].rgb is not frame0[("FV", "curr")].rgb
+
+
 def _jpeg_over(path):
     """Re-encode an image file as a JPEG under its own (``.png``) name."""
     import os
