@@ -14,13 +14,35 @@ from .._constants import DVS_EVENT_DTYPE
 from ..groundtruth import EventMap
 
 
-def _by_time(flat: np.ndarray, t: np.ndarray, pol: np.ndarray, width: int) -> np.ndarray:
-    """CARLA-dtype events of fisheye flat indices ``flat``, stably sorted by ``t``."""
+def _time_order(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stable order of the int64 times ``t`` and the sorted times. When every time minus the
+    earliest fits beside an event's index in 63 bits (spans up to hours for millions of events),
+    one unstable sort of ``(t - min) << b | index`` gives both (the index breaks ties as a stable
+    sort does); otherwise a stable argsort."""
+    n = t.shape[0]
+    bits = max(n - 1, 1).bit_length()
+    if n:
+        low, high = int(t.min()), int(t.max())
+        if high - low < 1 << (63 - bits):
+            key = t - low
+            key <<= bits
+            key |= np.arange(n, dtype=np.int64)
+            key.sort()
+            order = key & ((1 << bits) - 1)
+            key >>= bits
+            key += low
+            return order, key
     order = np.argsort(t, kind="stable")
+    return order, t[order]
+
+
+def _by_time(flat: np.ndarray, t: np.ndarray, pol: np.ndarray, width: int) -> np.ndarray:
+    """CARLA-dtype events of fisheye flat indices ``flat``, stably sorted by ``t`` (int64)."""
+    order, t_sorted = _time_order(np.asarray(t, np.int64))
     y, x = np.divmod(flat[order], width)
     out = np.empty(order.shape[0], DVS_EVENT_DTYPE)
     out["x"], out["y"] = x, y
-    out["t"], out["pol"] = t[order], pol[order]
+    out["t"], out["pol"] = t_sorted, pol[order]
     return out
 
 

@@ -42,6 +42,22 @@ def test_numpy_event_mapping_follows_the_rule():
             [(w[0], w[2], w[3], w[4]) for w in want]
 
 
+def test_time_order_is_the_stable_argsort():
+    """The packed-key sort and its fallback (spans too long to pack) give NumPy's stable order."""
+    from jaxfish.pipeline._events import _time_order
+
+    rng = np.random.default_rng(3)
+    cases = [np.zeros(0, np.int64), np.array([5], np.int64), rng.integers(0, 30, 5000),  # many ties
+             np.concatenate([np.sort(rng.integers(-10**9, 10**9, 700)) for _ in range(5)]),  # sorted runs
+             rng.integers(-2**62, 2**62, 3000),  # too long a span: the fallback
+             np.array([np.iinfo(np.int64).min, np.iinfo(np.int64).max, 0, 0])]
+    for t in cases:
+        order, ts = _time_order(t.astype(np.int64))
+        want = np.argsort(t, kind="stable")
+        np.testing.assert_array_equal(order, want)
+        np.testing.assert_array_equal(ts, t[want])
+
+
 def test_camera_events_face_by_face_equal_the_mapping_of_all_faces():
     """`camera_events` (each face mapped on its own) gives the events of `map_face_events` of the
     concatenated faces: same order (time, then face, event and fisheye pixel), out-of-face events
