@@ -50,6 +50,7 @@ from ._carla import (
 from ._folder import is_temporary
 from ._images import decode_image_bytes, read_image, write_image
 from ._json import read_json, regular_file, write_json
+from ._npz import write_npy_into
 
 CAPTURE_FORMAT = "jaxfish-capture"
 """Format name and version stored in ``capture.json``."""
@@ -74,7 +75,7 @@ def _json(path: Path, obj: Any) -> None:
 def write_npy(path: Path, arr: np.ndarray) -> None:
     """Write ``arr`` as ``.npy`` (C order, no pickle), atomically."""
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.save(fh, np.ascontiguousarray(arr), allow_pickle=False)
+        write_npy_into(fh, np.ascontiguousarray(arr))
 
 
 def _transform(loc, rot) -> dict[str, list[float]]:

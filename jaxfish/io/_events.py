@@ -11,7 +11,7 @@ import numpy as np
 from .._errors import ImageError
 from ._atomic import atomic_path
 from ._carla import DVS_EVENT_DTYPE
-from ._npz import NpzMember, write_npz
+from ._npz import NpzMember, write_npy_into, write_npz
 
 TONIC_EVENT_DTYPE = np.dtype([("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "i1")])
 """The tonic event dtype jaxfish writes: ``x, y`` int16, ``t`` int64 (µs), ``p`` int8 (1 / 0),
@@ -80,7 +80,7 @@ def write_events_npy(path: str | os.PathLike, events: np.ndarray) -> Path:
     if ev.dtype != DVS_EVENT_DTYPE:
         ev = ev.astype(DVS_EVENT_DTYPE)  # same fields, other widths or order
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.save(fh, np.ascontiguousarray(ev), allow_pickle=False)
+        write_npy_into(fh, np.ascontiguousarray(ev))
     return path
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import ImageError
-from ._atomic import atomic_path
+from ._atomic import atomic_path, write_sliced
 from ._images import PNG_LEVEL, read_image, write_image
 
 FLO_TAG = 202021.25
@@ -32,7 +32,7 @@ def write_flo(path: str | os.PathLike, flow: np.ndarray) -> Path:
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.asarray([FLO_TAG], "<f4").tofile(fh)
         np.asarray([w, h], "<i4").tofile(fh)
-        np.ascontiguousarray(f, dtype="<f4").tofile(fh)
+        write_sliced(fh, np.ascontiguousarray(f, dtype="<f4"))
     return path
 
 

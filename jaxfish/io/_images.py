@@ -20,7 +20,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from .._errors import ImageError
-from ._atomic import atomic_path
+from ._atomic import atomic_path, write_sliced
 from ._json import regular_file, to_json_text
 from ._png import PNG_SIGNATURE, decode_png, encode_png, png_text, read_png_bytes
 
@@ -135,8 +135,8 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
     a, meta = _prepared(path, pixels, metadata, png_level, channel_names)
     if path.suffix.lower() == ".png":
         data = encode_png(a, text=meta, png_level=png_level, where=str(path))
-        with atomic_path(path) as tmp:
-            tmp.write_bytes(data)
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            write_sliced(fh, data)
         return path
     h, w, c = a.shape
     ext = path.suffix.lower()

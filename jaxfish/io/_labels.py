@@ -15,8 +15,10 @@ import numpy as np
 
 from .._errors import ImageError
 from ._atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from ._exr import exr_z_bytes
 from ._images import PNG_LEVEL, read_image, read_image_metadata, write_image
-from ._json import write_json
+from ._json import to_json_text, write_json
+from ._npz import write_npy_into
 
 PALETTE_ATTRIBUTE = "jaxfish:palette"
 """Metadata key of the palette JSON in colour label PNGs."""
@@ -167,7 +169,7 @@ def write_depth_npy(path: str | os.PathLike, depth_m: np.ndarray) -> Path:
     """Depth map as float32 ``.npy`` (metres; range or z-depth as documented by the caller; sky 1000)."""
     path = Path(path)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.save(fh, np.asarray(depth_m, np.float32), allow_pickle=False)
+        write_npy_into(fh, np.asarray(depth_m, np.float32))
     return path
 
 
@@ -178,12 +180,18 @@ DEPTH_ATTRIBUTE = "jaxfish:depth"
 def write_depth_exr(path: str | os.PathLike, depth_m: np.ndarray, definition: Mapping[str, Any] | None = None) -> Path:
     """Depth map as a one-channel float32 OpenEXR (channel ``Z``, uncompressed: faster to write
     than zip, for larger files; figures in docs/performance.md), with ``definition`` (JSON-able: what the values are) stored as
-    the text attribute `DEPTH_ATTRIBUTE`; atomic. Read it back with `read_depth_exr`."""
+    the text attribute `DEPTH_ATTRIBUTE`; atomic. Encoded by NumPy (`jaxfish.io._exr`): the bytes
+    `write_image` (OpenImageIO) writes for the same map. Read it back with `read_depth_exr`."""
+    path = Path(path)
     d = np.asarray(depth_m, np.float32)
     if d.ndim != 2:
         raise ImageError(f"{path}: depth must be (H, W), got {d.shape}")
-    return write_image(path, d, channel_names=("Z",), exr_compression="none",
-                       metadata=None if definition is None else {DEPTH_ATTRIBUTE: dict(definition)})
+    if path.suffix.lower() != ".exr" or 0 in d.shape:  # write_image names the fault
+        return write_image(path, d, channel_names=("Z",), exr_compression="none",
+                           metadata=None if definition is None else {DEPTH_ATTRIBUTE: dict(definition)})
+    text = None if definition is None else {DEPTH_ATTRIBUTE: to_json_text(
+        f"{path} (metadata {DEPTH_ATTRIBUTE!r})", dict(definition), error=ImageError).rstrip("\n")}
+    return atomic_write_bytes(path, exr_z_bytes(d, text))
 
 
 def read_depth_exr(path: str | os.PathLike) -> np.ndarray:

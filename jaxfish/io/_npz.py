@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import atomic_path
+from ._atomic import atomic_path, write_sliced
 
 ZIP_DATE_TIME = (1980, 1, 1, 0, 0, 0)
 """The timestamp of every member `write_npz` writes (zip's earliest)."""
@@ -73,10 +73,17 @@ def _write_member(fh, member: np.ndarray | NpzMember) -> None:
         if size != member.dtype.itemsize * int(np.prod(member.shape)):
             raise ValueError(f"write_npz: a {member.dtype} {member.shape} member's chunks hold {size} bytes")
         return
-    arr = np.asanyarray(member)
+    write_npy_into(fh, member)
+
+
+def write_npy_into(fh, arr: np.ndarray) -> None:
+    """The bytes ``np.save(fh, arr, allow_pickle=False)`` writes, its data from the array's buffer
+    in slices (`write_sliced`) when the array is C-contiguous and its header version 1.0."""
+    arr = np.asanyarray(arr)
     header = _npy_header(arr.dtype, arr.shape) if arr.flags.c_contiguous and type(arr) is np.ndarray else None
     if header is None:  # Fortran order, a later header version, a subclass: NumPy's own writer
         np.lib.format.write_array(fh, arr, allow_pickle=False)
         return
     fh.write(header)
-    fh.write(_bytes_of(arr))
+    if arr.size:
+        write_sliced(fh, arr)

@@ -19,10 +19,10 @@ def test_a_full_disk_names_the_destination_and_leaves_nothing(tmp_path, monkeypa
     assert e.value.errno == errno.ENOSPC and f"{dest}: cannot write (No space left on device)" in str(e.value)
     assert list((tmp_path / "out").iterdir()) == []
 
-    def full(self, data):
-        raise OSError(errno.EDQUOT, os.strerror(errno.EDQUOT), str(self))  # names the temporary file
+    def full(fh, data):
+        raise OSError(errno.EDQUOT, os.strerror(errno.EDQUOT), fh.name)  # names the temporary file
 
-    monkeypatch.setattr("pathlib.Path.write_bytes", full)
+    monkeypatch.setattr("jaxfish.io._atomic.write_sliced", full)
     with pytest.raises(OSError, match=rf"{dest.with_name('x.json')}: cannot write \(Disk quota exceeded\)"):
         atomic_write_bytes(dest.with_name("x.json"), b"{}")
     assert list((tmp_path / "out").iterdir()) == []

@@ -134,6 +134,24 @@ def test_png_level_and_depth_exr(tmp_path):
         write_image(tmp_path / "c.exr", d, channel_names=("Z", "W"))
 
 
+@pytest.mark.parametrize("shape", [(1, 1), (3, 1000), (966, 1280)])
+def test_depth_exr_has_the_bytes_openimageio_writes(tmp_path, shape):
+    """`write_depth_exr` encodes with NumPy the file `write_image` (OpenImageIO) writes for the
+    same map and definition: non-finite values and signed zeros kept bit for bit."""
+    from jaxfish.io import DEPTH_ATTRIBUTE, read_depth_exr, write_depth_exr
+
+    d = np.random.default_rng(shape[1]).random(shape, dtype=np.float32) * 1000
+    d.flat[: min(d.size, 4)] = np.array([np.nan, np.inf, -0.0, -np.inf], np.float32)[: min(d.size, 4)]
+    for definition in (None, {"kind": "range", "unit": "m"}, {"note": "é ∞ \"quoted\""}):
+        got = write_depth_exr(tmp_path / "fast.exr", d, definition)
+        want = write_image(tmp_path / "oiio.exr", d, channel_names=("Z",), exr_compression="none",
+                           metadata=None if definition is None else {DEPTH_ATTRIBUTE: definition})
+        assert got.read_bytes() == want.read_bytes()
+        np.testing.assert_array_equal(read_depth_exr(got).view(np.uint32), d.view(np.uint32))
+    with pytest.raises(ImageError, match="depth must be"):
+        write_depth_exr(tmp_path / "bad.exr", d[None])
+
+
 def _jpeg_named_png(tmp_path):
     import OpenImageIO as oiio
 
