@@ -30,7 +30,9 @@ workers (4 on 2 cores: two per core), with no compile cache (``off``), an empty 
 the one the cold build filled (``warm``) (``--caches``); it prints each build's wall time
 (compilation, cluster start included), the time to its first sample, its rate after the first,
 and its rate over the second half of its samples (every worker past its start: the rate a long build
-keeps).
+keeps), and for the serial build the CPU seconds per sample over that second half (every thread of
+the process that builds: what a long serial build costs a sample, its files kept as a build keeps
+them).
 
     uv run python scripts/bench_build.py --content textured --scale 0.25 --frames 8 --workers 1,2,4
 
@@ -373,13 +375,21 @@ def _whole_build(capture: str, out: str, workers: int, cache: str) -> dict:
     from jaxfish.dataset import BuildOptions, build_dataset
 
     stamps: list[float] = []
+    cpu: list[float] = []  # this process's CPU time at each completion: a serial build's own work
+
+    def progress(_sample, _error) -> None:
+        stamps.append(time.perf_counter())
+        cpu.append(time.process_time())
+
     start = time.perf_counter()
     report = build_dataset(capture, out, options=BuildOptions(compile_cache=cache or False),
-                           workers=workers or None, progress=lambda _s, _e: stamps.append(time.perf_counter()))
+                           workers=workers or None, progress=progress)
     wall = time.perf_counter() - start
     assert report.ok, report.summary()
+    half = len(stamps) // 2 - 1
     return {"wall_s": wall, "first_s": stamps[0] - start, "after_rate": _rate(stamps), "samples": len(report.built),
-            "half_rate": _rate(stamps[len(stamps) // 2 - 1:] if len(stamps) >= 4 else [])}
+            "half_rate": _rate(stamps[half:] if len(stamps) >= 4 else []),
+            "half_cpu_s": (cpu[-1] - cpu[half]) / (len(cpu) - 1 - half) if workers == 0 and len(cpu) >= 4 else None}
 
 
 def _rate(stamps: list[float]) -> float:
@@ -406,7 +416,7 @@ def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list
     empty one (``cold``) and the one the cold build filled (``warm``)."""
     print(f"whole builds of {len(_frames(capture))} samples, each in a fresh process (load {os.getloadavg()[0]:.1f}):")
     print(f"  {'build':22s} {'cache':5s} {'wall s':>7s} {'first s':>8s} {'samples/s after 1st':>20s} "
-          f"{'second half':>12s}")
+          f"{'second half':>12s} {'CPU-s per sample, second half (serial)':>39s}")
     for n in [0, *workers]:
         name = "serial (--no-dask)" if n == 0 else f"--workers {n}"
         folder = scratch / f"xla-{n}"
@@ -415,8 +425,9 @@ def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list
             out = scratch / f"whole-{n}-{cache}"
             r = _whole_build_in_a_process(capture, out, n, "" if cache == "off" else str(folder))
             shutil.rmtree(out, ignore_errors=True)
+            cpu = "" if r["half_cpu_s"] is None else f"{r['half_cpu_s']:.2f}"
             print(f"  {name:22s} {cache:5s} {r['wall_s']:7.1f} {r['first_s']:8.1f} {r['after_rate']:20.2f} "
-                  f"{r['half_rate']:12.2f}", flush=True)
+                  f"{r['half_rate']:12.2f} {cpu:>39s}", flush=True)
 
 
 def _frames(capture: Path) -> list:
