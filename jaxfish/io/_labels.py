@@ -180,8 +180,8 @@ DEPTH_ATTRIBUTE = "jaxfish:depth"
 def write_depth_exr(path: str | os.PathLike, depth_m: np.ndarray, definition: Mapping[str, Any] | None = None) -> Path:
     """Depth map as a one-channel float32 OpenEXR (channel ``Z``, uncompressed: faster to write
     than zip, for larger files; figures in docs/performance.md), with ``definition`` (JSON-able: what the values are) stored as
-    the text attribute `DEPTH_ATTRIBUTE`; atomic. Encoded by NumPy (`jaxfish.io._exr`): the bytes
-    `write_image` (OpenImageIO) writes for the same map. Read it back with `read_depth_exr`."""
+    the text attribute `DEPTH_ATTRIBUTE`; atomic. Encoded with NumPy: the bytes `write_image`
+    (OpenImageIO) writes for the same map and definition. Read it back with `read_depth_exr`."""
     path = Path(path)
     d = np.asarray(depth_m, np.float32)
     if d.ndim != 2:

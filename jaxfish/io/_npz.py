@@ -40,11 +40,6 @@ def _npy_header(dtype: np.dtype, shape: tuple[int, ...]) -> bytes | None:
     return buf.getvalue()
 
 
-def _bytes_of(arr: np.ndarray):
-    """A C-contiguous array's buffer as bytes, without a copy."""
-    return memoryview(arr.reshape(-1).view(np.uint8)) if arr.size else b""
-
-
 def write_npz(path: str | os.PathLike, **arrays: np.ndarray | NpzMember) -> Path:
     """``np.savez``-compatible ``.npz`` with fixed zip timestamps (1980-01-01), so the same arrays
     always give the same bytes (``np.savez`` stamps the current time); atomic, no pickle. A member
