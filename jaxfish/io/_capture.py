@@ -163,9 +163,14 @@ def read_images(directory: Path, instant: str = "curr", *, actor_ids: bool = Tru
     sem = load("semantic", decode_semantic, sem_out)
     if not actor_ids:
         return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=None)  # type: ignore[arg-type]
+    return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=_actor_ids(directory, instant, size))
+
+
+def _actor_ids(directory: Path, instant: str, size: tuple[int, int] | None) -> np.ndarray:
+    """The int32 actor ids of ``instance_{instant}.png`` in ``directory``."""
     path = directory / f"instance_{instant}.png"
     _, ids = _checked(decode_instance, path, size)(read_image(path, lossless=True))
-    return CameraImages(rgb=rgb, depth_m=depth, semantic=sem, actor_id=ids.astype(np.int32))
+    return ids.astype(np.int32)
 
 
 def face_stacks(faces: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -270,6 +275,8 @@ def _kept_stacks(key: tuple[str, ...], directories: Sequence[Path]) -> tuple[np.
             path = directory / f"{kind}_prev.png"
             try:
                 regular_file(path, ImageError, "image file")
+                if path.stat().st_size != len(hit[0]):  # not a copy: not read twice
+                    return None
                 data = path.read_bytes()
             except (OSError, ImageError):
                 return None  # decoded one face at a time, whose errors name the file
@@ -673,13 +680,13 @@ class CaptureReader:
 
         with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, decode_threads()))) as pool:
             imgs = dict(zip(jobs, pool.map(read, jobs), strict=True))
-            if actor_ids and any(kept.values()):  # the instance PNGs of the kept views
-                ids = [(v, i) for v in views if kept.get(v) is not None for i in range(n)]
-                imgs.update(zip(ids, pool.map(lambda job: self.face(frame, job[0][0], self.faces[job[1]], "prev",
-                                                                    out=None), ids), strict=True))
+            reused = [(v, i) for v in views if kept.get(v) is not None for i in range(n)] if actor_ids else []
+            ids_of = dict(zip(reused, pool.map(  # the instance PNGs of the views handed on
+                lambda job: _actor_ids(self._frame(frame) / "cameras" / job[0][0] / self.faces[job[1]], "prev",
+                                       (int(size), int(size))), reused), strict=True))
         result = {}
         for v in views:
-            faces = [imgs[(v, i)] for i in range(n)] if (v in stacks or actor_ids) else []
+            faces = [imgs[(v, i)] for i in range(n)] if v in stacks else []
             out = kept.get(v) or stacks[v]
             if out is None:
                 out = tuple(np.stack([getattr(f, k) for f in faces]) for k in ("rgb", "depth_m", "semantic"))
@@ -689,7 +696,10 @@ class CaptureReader:
                 if v[1] == "curr" and self._reuse_key is not None:
                     with _LAST_CURR_LOCK:
                         _LAST_STACKS[self._reuse_key + (v[0],)] = out
-            ids = None if not faces or faces[0].actor_id is None else np.stack([f.actor_id for f in faces])
+            if v in stacks:
+                ids = None if faces[0].actor_id is None else np.stack([f.actor_id for f in faces])
+            else:
+                ids = np.stack([ids_of[(v, i)] for i in range(n)]) if actor_ids else None
             result[v] = CameraImages(*out, ids)
         return result
 

@@ -20,7 +20,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from .._errors import ImageError
-from ._atomic import atomic_path, write_sliced
+from ._atomic import atomic_path, atomic_write_bytes
 from ._json import regular_file, to_json_text
 from ._png import PNG_SIGNATURE, decode_png, encode_png, png_text, read_png_bytes
 
@@ -134,10 +134,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, *, metadata: Mappin
     path = Path(path)
     a, meta = _prepared(path, pixels, metadata, png_level, channel_names)
     if path.suffix.lower() == ".png":
-        data = encode_png(a, text=meta, png_level=png_level, where=str(path))
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            write_sliced(fh, data)
-        return path
+        return atomic_write_bytes(path, encode_png(a, text=meta, png_level=png_level, where=str(path)))
     h, w, c = a.shape
     ext = path.suffix.lower()
     with atomic_path(path) as tmp:
@@ -199,9 +196,14 @@ def _prepared(path: Path, pixels: np.ndarray, metadata: Mapping[str, Any] | None
     h, w, c = a.shape
     if channel_names is not None and len(channel_names) != c:
         raise ImageError(f"{path}: {len(channel_names)} channel names for {c} channels")
-    meta = {name: to_json_text(f"{path} (metadata {name!r})", value, error=ImageError).rstrip("\n")
+    return a, metadata_text(path, metadata)
+
+
+def metadata_text(path: Path, metadata: Mapping[str, Any] | None) -> dict[str, str]:
+    """``metadata`` as the text attributes `write_image` stores: each value as one line of JSON
+    (`ImageError` naming the file and attribute for a value JSON cannot hold)."""
+    return {name: to_json_text(f"{path} (metadata {name!r})", value, error=ImageError).rstrip("\n")
             for name, value in (metadata or {}).items()}
-    return a, meta
 
 
 def read_image_metadata(path: str | os.PathLike, name: str) -> Any:

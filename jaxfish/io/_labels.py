@@ -16,8 +16,8 @@ import numpy as np
 from .._errors import ImageError
 from ._atomic import atomic_path, atomic_write_bytes, atomic_write_text
 from ._exr import exr_z_bytes
-from ._images import PNG_LEVEL, read_image, read_image_metadata, write_image
-from ._json import to_json_text, write_json
+from ._images import PNG_LEVEL, metadata_text, read_image, read_image_metadata, write_image
+from ._json import write_json
 from ._npz import write_npy_into
 
 PALETTE_ATTRIBUTE = "jaxfish:palette"
@@ -189,8 +189,7 @@ def write_depth_exr(path: str | os.PathLike, depth_m: np.ndarray, definition: Ma
     if path.suffix.lower() != ".exr" or 0 in d.shape:  # write_image names the fault
         return write_image(path, d, channel_names=("Z",), exr_compression="none",
                            metadata=None if definition is None else {DEPTH_ATTRIBUTE: dict(definition)})
-    text = None if definition is None else {DEPTH_ATTRIBUTE: to_json_text(
-        f"{path} (metadata {DEPTH_ATTRIBUTE!r})", dict(definition), error=ImageError).rstrip("\n")}
+    text = None if definition is None else metadata_text(path, {DEPTH_ATTRIBUTE: dict(definition)})
     return atomic_write_bytes(path, exr_z_bytes(d, text))
 
 
