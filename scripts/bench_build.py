@@ -36,6 +36,15 @@ them).
 
     uv run python scripts/bench_build.py --content textured --scale 0.25 --frames 8 --workers 1,2,4
 
+``--sequence`` instead builds every frame of the capture in order into one kept folder, serially in
+a fresh process with the builder's defaults, once from the capture and once from memory (each frame
+decoded first, untimed), and prints each sample's CPU seconds (user and system, every thread), its
+wall time, the programs it traced (a program variant met for the first time) and the system's free
+memory after it; then the median over the samples past the first three that traced no program:
+what each sample of a long build costs.
+
+    uv run python scripts/bench_build.py --content textured --sequence --textured-capture CAP  # e.g. 20 frames
+
 Goals: <= 2.0 CPU-s per sample from the textured capture (>= 1 sample/s on two cores), <= 1.5 from
 memory, peak < 4 GB. Current figures: docs/performance.md.
 """
@@ -430,6 +439,81 @@ def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list
                   f"{r['half_rate']:12.2f} {cpu:>39s}", flush=True)
 
 
+# ------------------------------------------------------------------ a long serial build, sample by sample
+def _free_mb() -> float | None:
+    """The system's free memory (``MemFree`` of ``/proc/meminfo``, MB), None where there is none."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemFree:"):
+                return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
+
+
+def measure_sequence(capture: str, out: str, in_memory: bool) -> list[dict]:
+    """`build_sample` of every frame of ``capture`` in order into the one folder ``out`` (kept, as a
+    build keeps its samples), in this (fresh) process with the builder's defaults (compile cache,
+    tuned allocator): the builder's `CaptureSource`, so that each frame's t-1 images are its
+    predecessor's t images, decoded and resampled once. ``in_memory``: each frame is decoded first,
+    untimed, and handed over decoded (`_Decoded`). Per sample: CPU seconds (user, system: every
+    thread), wall seconds, the programs it traced (a program variant this process meets for the
+    first time: traced, then compiled or loaded from the cache) and the system's free memory after it."""
+    import collections
+
+    from jax import monitoring
+
+    from jaxfish.dataset import BuildOptions, CaptureSource, build_sample, tune_allocator, use_compile_cache
+
+    options = BuildOptions()
+    use_compile_cache(options.compile_cache)
+    tune_allocator()
+    traced = collections.Counter()
+    monitoring.register_event_duration_secs_listener(
+        lambda event, _duration, **_kw: traced.update([event]) if event == "/jax/core/compile/jaxpr_trace_duration" else None)
+    source = CaptureSource(capture)
+    rows = []
+    for frame in source.frames:
+        src = _Decoded(source, source.read(frame)) if in_memory else source
+        before, t0, w0 = traced.total(), os.times(), time.perf_counter()
+        build_sample(src, out, frame, options=options)
+        t1 = os.times()
+        rows.append({"frame": frame, "user_s": t1.user - t0.user, "system_s": t1.system - t0.system,
+                     "wall_s": time.perf_counter() - w0, "traced": traced.total() - before, "free_mb": _free_mb()})
+    return rows
+
+
+SEQUENCE_WARM = 3
+"""Samples of a long build the sample-by-sample figures leave out: compilation, then the first
+sample (a one-frame sample: its t-1 is decoded and resampled) and the process's heap growing."""
+
+
+def bench_sequence(capture: Path, scratch: Path) -> None:
+    """`measure_sequence` of ``capture`` from the capture, then from memory, each in a fresh
+    process; per sample its CPU seconds, and the median over the samples after `SEQUENCE_WARM`
+    that traced no program."""
+    n = len(_frames(capture))
+    print(f"a long serial build of {capture} ({n} frames), sample by sample, each kind in a fresh process "
+          f"(load {os.getloadavg()[0]:.1f}):")
+    goals = {"from the capture": 2.0, "from memory (each frame decoded first)": 1.5}
+    for (kind, goal), in_memory in zip(goals.items(), (False, True), strict=True):
+        out = scratch / ("sequence-memory" if in_memory else "sequence")
+        rows = in_child(measure_sequence, str(capture), str(out), in_memory)
+        shutil.rmtree(out, ignore_errors=True)
+        print(f"  {kind}:")
+        print(f"    {'frame':>5s} {'CPU-s':>6s} {'user':>6s} {'system':>7s} {'wall s':>7s} {'traced':>7s} {'free MB':>8s}")
+        for r in rows:
+            cpu = r["user_s"] + r["system_s"]
+            free = "" if r["free_mb"] is None else f"{r['free_mb']:.0f}"
+            print(f"    {r['frame']:5d} {cpu:6.2f} {r['user_s']:6.2f} {r['system_s']:7.2f} {r['wall_s']:7.2f} "
+                  f"{r['traced']:7d} {free:>8s}")
+        steady = [r["user_s"] + r["system_s"] for r in rows[SEQUENCE_WARM:] if r["traced"] == 0]
+        if steady:
+            print(f"    median over the {len(steady)} samples after the first {SEQUENCE_WARM} that traced no program: "
+                  f"{statistics.median(steady):.2f} CPU-s (range {min(steady):.2f}-{max(steady):.2f}; goal <= {goal:.1f}; "
+                  f"2-core bound {2 / statistics.median(steady):.2f} samples/s)", flush=True)
+
+
 def _frames(capture: Path) -> list:
     import json
 
@@ -454,6 +538,9 @@ def main() -> None:
                         help="instead: whole builds of every frame on these worker counts, e.g. 1,2,4 (with a serial "
                              "one), on the textured capture (the smooth one with --content smooth)")
     parser.add_argument("--caches", default="off,cold,warm", help="compile caches of the whole builds")
+    parser.add_argument("--sequence", action="store_true",
+                        help="instead: a long serial build of every frame, sample by sample, from the capture and "
+                             "from memory, on the textured capture (the smooth one with --content smooth)")
     parser.add_argument("--frames", type=int, default=2,
                         help="frames of the rendered captures (two or more: the stage tables add the next sample of a sequence)")
     parser.add_argument("--whole-build", default=None, help=argparse.SUPPRESS)
@@ -466,6 +553,9 @@ def main() -> None:
     scratch = Path(tempfile.mkdtemp(prefix="jaxfish_bench_build_"))
     try:
         captures = prepare_captures(args, scratch)
+        if args.sequence:
+            bench_sequence(captures.get("textured", captures.get("smooth")), scratch)
+            return
         if args.workers:
             capture = captures.get("textured", captures.get("smooth"))
             bench_workers(capture, scratch, [int(n) for n in args.workers.split(",")], args.caches.split(","))
