@@ -96,9 +96,9 @@ def _forget_host_map(key: int, ref: weakref.ref) -> None:
 def _face_copies(table: _HostMap, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The events at face pixels ``src`` (indices into ``table.first``) once per fisheye pixel they
     feed, a pixel's targets in slot order: ``(event index, fisheye flat index)``."""
-    target = table.first[src]
+    target = table.first.take(src)  # ``src`` of NumPy's index type: taken without an index conversion
     index = np.flatnonzero(target != -1)
-    flat = target[index]
+    flat = target.take(index)
     several = np.flatnonzero(flat < -1)  # the few events whose pixel feeds more than one
     if several.size:
         rows = -2 - flat[several]
@@ -143,13 +143,12 @@ def camera_events(events: Sequence[np.ndarray], event_map: EventMap) -> np.ndarr
     table = _host_map_of(event_map)
     n = table.first.shape[0]
     s = int(event_map.face_size)
-    index = np.int32 if n < 2**31 else np.int64
     flats, times, pols = [], [], []
     for i, ev in enumerate(events):
         if ev.shape[0] == 0:
             continue
         x, y = ev["x"], ev["y"]
-        src = y.astype(index)
+        src = y.astype(np.intp)
         src *= s
         src += x
         src += i * s * s
