@@ -507,11 +507,15 @@ def bench_sequence(capture: Path, scratch: Path) -> None:
             free = "" if r["free_mb"] is None else f"{r['free_mb']:.0f}"
             print(f"    {r['frame']:5d} {cpu:6.2f} {r['user_s']:6.2f} {r['system_s']:7.2f} {r['wall_s']:7.2f} "
                   f"{r['traced']:7d} {free:>8s}")
-        steady = [r["user_s"] + r["system_s"] for r in rows[SEQUENCE_WARM:] if r["traced"] == 0]
+        steady = [r for r in rows[SEQUENCE_WARM:] if r["traced"] == 0]
         if steady:
+            cpu = [r["user_s"] + r["system_s"] for r in steady]
+            med = statistics.median(cpu)
             print(f"    median over the {len(steady)} samples after the first {SEQUENCE_WARM} that traced no program: "
-                  f"{statistics.median(steady):.2f} CPU-s (range {min(steady):.2f}-{max(steady):.2f}; goal <= {goal:.1f}; "
-                  f"2-core bound {2 / statistics.median(steady):.2f} samples/s)", flush=True)
+                  f"{med:.2f} CPU-s (range {min(cpu):.2f}-{max(cpu):.2f}; goal <= {goal:.1f}; 2-core bound "
+                  f"{2 / med:.2f} samples/s); user {statistics.median(r['user_s'] for r in steady):.2f}, "
+                  f"system {statistics.median(r['system_s'] for r in steady):.2f} "
+                  f"(range {min(r['system_s'] for r in steady):.2f}-{max(r['system_s'] for r in steady):.2f})", flush=True)
 
 
 def _frames(capture: Path) -> list:
