@@ -105,22 +105,32 @@ def codec_table(repeats: int, tmp: Path) -> list[str]:
         assert np.array_equal(_png.decode_png(data), a3)
         enc = median_ms(lambda a3=a3: _png.encode_png(a3), repeats)
         dec = median_ms(lambda data=data: _png.decode_png(data), repeats)
-        rows.append(f"| {name} | jaxfish ({_png.deflate_name()} level 1 + Up; inflate + row sum) | {enc:.1f} | "
+        raw = a3.shape[0] * (a3.shape[1] * a3.shape[2] * a3.dtype.itemsize + 1)
+        libdeflate = _png._libdeflate is not None and raw >= _png.LIBDEFLATE_MIN_RATIO * len(data)  # as _png._decompress
+        inflate = "libdeflate" if libdeflate else _png.deflate_name()
+        rows.append(f"| {name} | jaxfish ({_png.deflate_name()} level 1 + Up; {inflate} inflate + row sum) | {enc:.1f} | "
                     f"{dec:.1f} | {len(data) / px:.2f} |")
+        if libdeflate:
+            kept, _png._libdeflate = _png._libdeflate, None
+            try:
+                dec = median_ms(lambda data=data: _png.decode_png(data), repeats)
+            finally:
+                _png._libdeflate = kept
+            rows.append(f"| {name} | jaxfish decode without libdeflate ({_png.deflate_name()} inflate) | | {dec:.1f} | |")
         if a.dtype == np.uint8:
             import pyspng
 
             dec = median_ms(lambda data=data: pyspng.load(data), repeats)
             rows.append(f"| {name} | pyspng decode of jaxfish's file | | {dec:.1f} | |")
-        isal = _png._isal_zlib
-        _png._isal_zlib = None
+        isal, libdeflate_module = _png._isal_zlib, _png._libdeflate
+        _png._isal_zlib = _png._libdeflate = None
         try:
             zdata = _png.encode_png(a3)
             enc = median_ms(lambda a3=a3: _png.encode_png(a3), max(3, repeats // 3))
             dec = median_ms(lambda zdata=zdata: _png.decode_png(zdata), max(3, repeats // 3))
         finally:
-            _png._isal_zlib = isal
-        rows.append(f"| {name} | jaxfish without isal (zlib {zlib.ZLIB_RUNTIME_VERSION} level 1 + Up) | {enc:.1f} | "
+            _png._isal_zlib, _png._libdeflate = isal, libdeflate_module
+        rows.append(f"| {name} | jaxfish without isal and libdeflate (zlib {zlib.ZLIB_RUNTIME_VERSION} level 1 + Up) | {enc:.1f} | "
                     f"{dec:.1f} | {len(zdata) / px:.2f} |")
     return rows
 

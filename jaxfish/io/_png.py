@@ -14,8 +14,12 @@ same deflate implementation.
 **Decoder** (`decode_png`). Every chunk's CRC is checked and the IHDR validated; then
 
 - 8/16-bit grey, grey + alpha, RGB or RGBA, not interlaced, no ``tRNS``, every row filtered None or
-  Up: inflate (ISA-L or zlib) and a running sum of the rows in uint8 (wrapping modulo 256, which is
-  the Up filter's inverse);
+  Up: inflate and a running sum of the rows in uint8 (wrapping modulo 256, which is the Up filter's
+  inverse). The inflate is libdeflate's (PyPI ``deflate``) for a stream at least
+  `LIBDEFLATE_MIN_RATIO` times smaller than its rows (label maps, encoded depth: faster than
+  ISA-L on their long matches), ISA-L's for the others (a textured render: ISA-L is
+  slightly faster there), zlib's where neither imports; a stream libdeflate refuses (corrupt, or
+  longer than the image) is inflated again by ISA-L or zlib, whose errors name the file;
 - the same kinds at 8 bits with other filters or Adam7 interlacing: ``pyspng`` (libspng) where it
   imports;
 - anything else (16 bits with other filters, palettes, 1/2/4-bit grey, ``tRNS``, or no pyspng):
@@ -41,6 +45,11 @@ try:  # ISA-L: the same deflate format, several times faster than zlib at its fa
     from isal import isal_zlib as _isal_zlib
 except ImportError:  # pragma: no cover - isal is a dependency; zlib is the documented fallback
     _isal_zlib = None
+
+try:  # libdeflate: the fastest inflate of highly compressible streams
+    import deflate as _libdeflate
+except ImportError:  # pragma: no cover - deflate is a dependency; ISA-L or zlib inflate instead
+    _libdeflate = None
 
 try:
     import pyspng as _pyspng
@@ -84,7 +93,17 @@ def _compress(data, png_level: int) -> bytes:
     return _deflate.compress(data, ISAL_LEVELS[png_level])
 
 
-def _decompress(data: bytes, size: int) -> bytes:
+LIBDEFLATE_MIN_RATIO = 4
+"""A zlib stream whose inflated size is at least this many times its own is inflated by libdeflate
+(module docstring)."""
+
+
+def _decompress(data: bytes, size: int) -> bytes | bytearray:
+    if _libdeflate is not None and size >= LIBDEFLATE_MIN_RATIO * len(data):
+        try:
+            return _libdeflate.zlib_decompress(data, max(size, 1))
+        except _libdeflate.DeflateError:
+            pass  # corrupt, or longer than ``size`` bytes: the inflate below reads it or says why not
     if _isal_zlib is not None:
         return _isal_zlib.decompress(data, bufsize=max(size, 1))
     return zlib.decompress(data, bufsize=max(size, 1))

@@ -13,6 +13,7 @@ import OpenImageIO as oiio
 import pytest
 from PIL import Image
 
+from jaxfish import ImageError
 from jaxfish.io import _png, read_image, read_image_metadata, write_image
 from jaxfish.io._bev import BEV_METADATA_ATTRIBUTE, read_bev_metadata, write_png_with_metadata
 from jaxfish.io._flow import read_kitti_flow, write_kitti_flow
@@ -288,6 +289,70 @@ def test_reads_mixed_none_up_rows_by_the_fast_path(tmp_path, monkeypatch):
                                (b"IDAT", zlib.compress(raw)), (b"IEND", b"")]))
     monkeypatch.setattr(_png, "_pyspng", None)  # the fast path alone must read it
     assert np.array_equal(read_image(path), a) and np.array_equal(read_oiio(path), a)
+
+
+def _inflates(monkeypatch) -> list[str]:
+    """Record which inflate `decode_png` runs: ``"libdeflate"`` when libdeflate returns the rows,
+    ``"fallback"`` when ISA-L / zlib inflates them."""
+    calls: list[str] = []
+    libdeflate, fallback = _png._libdeflate.zlib_decompress, (_png._isal_zlib or zlib).decompress
+
+    class Spy:
+        DeflateError = _png._libdeflate.DeflateError
+
+        @staticmethod
+        def zlib_decompress(data, size):
+            out = libdeflate(data, size)  # raises DeflateError when it refuses the stream
+            calls.append("libdeflate")
+            return out
+
+    class Fallback:
+        error = getattr(_png._isal_zlib, "error", zlib.error)
+
+        @staticmethod
+        def decompress(data, bufsize):
+            calls.append("fallback")
+            return fallback(data, bufsize=bufsize)
+
+    monkeypatch.setattr(_png, "_libdeflate", Spy)
+    monkeypatch.setattr(_png, "_isal_zlib" if _png._isal_zlib is not None else "zlib", Fallback)
+    return calls
+
+
+def test_compressible_streams_inflate_through_libdeflate(monkeypatch):
+    """A label map's stream (far smaller than its rows) is inflated by libdeflate, a noisy image's
+    by ISA-L; both read the same pixels as without libdeflate."""
+    labels = np.repeat(np.arange(12, dtype=np.uint8)[:, None], 40, axis=1)
+    noise = _texture((12, 40, 3), np.uint8)
+    files = {"labels": _png.encode_png(labels[..., None]), "noise": _png.encode_png(noise)}
+    calls = _inflates(monkeypatch)
+    got = {name: _png.decode_png(data) for name, data in files.items()}
+    assert calls == ["libdeflate", "fallback"]
+    monkeypatch.setattr(_png, "_libdeflate", None)
+    for name, data in files.items():
+        assert np.array_equal(got[name], _png.decode_png(data))
+    assert np.array_equal(got["labels"][..., 0], labels) and np.array_equal(got["noise"], noise)
+
+
+def test_streams_libdeflate_refuses_read_as_without_it(monkeypatch):
+    """A stream that inflates to more than the image (extra bytes after the rows) is refused by
+    libdeflate and read by ISA-L as before; a corrupt or short one raises ISA-L's errors."""
+    rows = np.zeros((8, 17), np.uint8)  # 8 rows of 16 grey pixels, filter None
+    header = (b"IHDR", struct.pack(">IIBBBBB", 16, 8, 8, 0, 0, 0, 0))
+
+    def png(stream: bytes) -> bytes:
+        return assemble([header, (b"IDAT", stream), (b"IEND", b"")])
+
+    longer = png(zlib.compress(rows.tobytes() + bytes(40)))
+    calls = _inflates(monkeypatch)
+    assert np.array_equal(_png.decode_png(longer), np.zeros((8, 16, 1), np.uint8))
+    assert calls == ["fallback"]
+    bad = bytearray(zlib.compress(rows.tobytes()))
+    bad[-1] ^= 0xFF  # the Adler-32 check fails
+    with pytest.raises(ImageError, match="x.png: corrupt PNG: the IDAT data does not inflate"):
+        _png.decode_png(png(bytes(bad)), "x.png")
+    with pytest.raises(ImageError, match="x.png: truncated PNG"):
+        _png.decode_png(png(zlib.compress(rows.tobytes()[:-17])), "x.png")
 
 
 def _adam7(a: np.ndarray) -> bytes:
