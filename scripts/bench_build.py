@@ -41,7 +41,8 @@ a fresh process with the builder's defaults, once from the capture and once from
 decoded first, untimed), and prints each sample's CPU seconds (user and system, every thread), its
 wall time, the programs it traced (a program variant met for the first time) and the system's free
 memory after it; then the median over the samples past the first three that traced no program:
-what each sample of a long build costs.
+what each sample of a long build costs. ``--sequence capture`` or ``--sequence memory`` runs one of
+the two.
 
     uv run python scripts/bench_build.py --content textured --sequence --textured-capture CAP  # e.g. 20 frames
 
@@ -488,15 +489,17 @@ SEQUENCE_WARM = 3
 sample (a one-frame sample: its t-1 is decoded and resampled) and the process's heap growing."""
 
 
-def bench_sequence(capture: Path, scratch: Path) -> None:
-    """`measure_sequence` of ``capture`` from the capture, then from memory, each in a fresh
-    process; per sample its CPU seconds, and the median over the samples after `SEQUENCE_WARM`
-    that traced no program."""
+def bench_sequence(capture: Path, scratch: Path, kinds: str = "both") -> None:
+    """`measure_sequence` of ``capture`` from the capture, then from memory (``kinds``: ``both``,
+    ``capture`` or ``memory``), each in a fresh process; per sample its CPU seconds, and the median
+    over the samples after `SEQUENCE_WARM` that traced no program."""
     n = len(_frames(capture))
     print(f"a long serial build of {capture} ({n} frames), sample by sample, each kind in a fresh process "
           f"(load {os.getloadavg()[0]:.1f}):")
     goals = {"from the capture": 2.0, "from memory (each frame decoded first)": 1.5}
     for (kind, goal), in_memory in zip(goals.items(), (False, True), strict=True):
+        if kinds != "both" and kinds != ("memory" if in_memory else "capture"):
+            continue
         out = scratch / ("sequence-memory" if in_memory else "sequence")
         rows = in_child(measure_sequence, str(capture), str(out), in_memory)
         shutil.rmtree(out, ignore_errors=True)
@@ -542,9 +545,10 @@ def main() -> None:
                         help="instead: whole builds of every frame on these worker counts, e.g. 1,2,4 (with a serial "
                              "one), on the textured capture (the smooth one with --content smooth)")
     parser.add_argument("--caches", default="off,cold,warm", help="compile caches of the whole builds")
-    parser.add_argument("--sequence", action="store_true",
+    parser.add_argument("--sequence", nargs="?", const="both", choices=("both", "capture", "memory"), default=None,
                         help="instead: a long serial build of every frame, sample by sample, from the capture and "
-                             "from memory, on the textured capture (the smooth one with --content smooth)")
+                             "from memory (or only one of them), on the textured capture (the smooth one with "
+                             "--content smooth)")
     parser.add_argument("--frames", type=int, default=2,
                         help="frames of the rendered captures (two or more: the stage tables add the next sample of a sequence)")
     parser.add_argument("--whole-build", default=None, help=argparse.SUPPRESS)
@@ -558,7 +562,7 @@ def main() -> None:
     try:
         captures = prepare_captures(args, scratch)
         if args.sequence:
-            bench_sequence(captures.get("textured", captures.get("smooth")), scratch)
+            bench_sequence(captures.get("textured", captures.get("smooth")), scratch, args.sequence)
             return
         if args.workers:
             capture = captures.get("textured", captures.get("smooth"))
