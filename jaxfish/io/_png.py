@@ -96,17 +96,24 @@ def _compress(data, png_level: int) -> bytes:
 LIBDEFLATE_MIN_RATIO = 4
 """A zlib stream whose inflated size is at least this many times its own is inflated by libdeflate
 (module docstring)."""
+DEFLATE_MAX_RATIO = 1032
+"""The most bytes deflate inflates from one byte of stream (a 258-byte match in two bits): the
+output buffer is the smaller of this bound and the image's size, so that an IHDR claiming a huge
+image over a small IDAT reads as a truncated file instead of allocating the image."""
 
 
 def _decompress(data: bytes, size: int) -> bytes | bytearray:
+    """The inflated zlib stream ``data`` of an image whose filtered rows hold ``size`` bytes (the
+    stream's own length when it differs: the caller checks)."""
+    buffer = max(min(size, DEFLATE_MAX_RATIO * len(data) + 64), 1)
     if _libdeflate is not None and size >= LIBDEFLATE_MIN_RATIO * len(data):
         try:
-            return _libdeflate.zlib_decompress(data, max(size, 1))
+            return _libdeflate.zlib_decompress(data, buffer)
         except _libdeflate.DeflateError:
             pass  # corrupt, or longer than ``size`` bytes: the inflate below reads it or says why not
     if _isal_zlib is not None:
-        return _isal_zlib.decompress(data, bufsize=max(size, 1))
-    return zlib.decompress(data, bufsize=max(size, 1))
+        return _isal_zlib.decompress(data, bufsize=buffer)  # a first buffer: a longer stream still inflates whole
+    return zlib.decompress(data, bufsize=buffer)
 
 
 def _chunk(kind: bytes, data: bytes | memoryview) -> bytes:

@@ -64,6 +64,17 @@ def ihdr_field(offset: int, value: int):
     return edit
 
 
+def ihdr_size(width: int, height: int):
+    """A valid-CRC file whose IHDR claims ``width`` x ``height`` pixels (its IDAT unchanged)."""
+
+    def edit(data: bytes) -> bytes:
+        parts = chunks(data)
+        ihdr = struct.pack(">II", width, height) + parts[0][1][8:]
+        return assemble([(b"IHDR", ihdr)] + parts[1:])
+
+    return edit
+
+
 def replace_idat(payload: bytes | None):
     """A valid-CRC file whose IDAT data is ``payload`` (None: no IDAT chunk)."""
 
@@ -138,6 +149,12 @@ CASES = [
     Case("png-read-ihdr-bit-depth-32", call=_read(ihdr_field(8, 32)), says=("x.png", "bit depth", "32")),
     Case("png-read-ihdr-interlace-2", call=_read(ihdr_field(12, 2)), says=("x.png", "interlace method")),
     Case("png-read-ihdr-width-0", call=_read(ihdr_field(3, 0)), says=("x.png", "bad IHDR", "width")),
+    # An IHDR claiming a huge image over a small IDAT: read as truncated, the image never allocated.
+    Case("png-read-ihdr-huge-image", call=_read(ihdr_size(2**31 - 1, 2**31 - 1)), says=("x.png", "truncated PNG")),
+    Case("png-read-ihdr-40-gb-image", call=_read(ihdr_size(100_000, 100_000)), says=("x.png", "truncated PNG")),
+    Case("png-read-ihdr-huge-image-bad-idat",
+         call=_read(lambda d: replace_idat(b"not a zlib stream")(ihdr_size(2**31 - 1, 2**31 - 1)(d))),
+         says=("x.png", "IDAT", "does not inflate")),
     Case("png-read-idat-short", call=_read(replace_idat(zlib.compress(b"\x02" * 10))),
          says=("x.png", "truncated PNG", "IDAT")),
     Case("png-read-filter-type-9", call=_read(replace_idat(zlib.compress(b"\x09" + b"\0" * 15 + b"\x02" * 48))),
