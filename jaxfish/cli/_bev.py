@@ -34,12 +34,11 @@ NO_LABEL = 255
 
 def _load_npy(path: Path):
     """A dataset ``.npy`` array; a corrupt file is a `JaxfishError` naming it."""
-    import numpy as np
-
     from .._errors import JaxfishError
+    from ..io import load_npy
 
     try:
-        return np.load(path, allow_pickle=False)
+        return load_npy(path)
     except (ValueError, OSError, EOFError) as e:
         raise JaxfishError(f"{path}: not a readable .npy array ({e})") from None
 

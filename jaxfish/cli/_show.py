@@ -101,11 +101,12 @@ def _boxes_3d(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def _lidar(path: Path) -> np.ndarray | None:
     """The ``lidar_vehicle`` sweep ``(N, 4)`` float32, or None when the file is absent."""
     from .._errors import JaxfishError
+    from ..io import load_npy
 
     if not path.exists():
         return None
     try:
-        a = np.load(path, allow_pickle=False)
+        a = load_npy(path)
     except (ValueError, OSError, EOFError) as e:
         raise JaxfishError(f"{path}: not a readable .npy array ({e})") from None
     if a.ndim != 2 or a.shape[1] != 4 or not np.issubdtype(a.dtype, np.floating):

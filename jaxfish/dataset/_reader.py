@@ -22,6 +22,7 @@ from .._errors import JaxfishError
 from ..io import (
     calibration_from_dict,
     load_bev_calibration,
+    load_npy,
     read_boxes_2d_csv,
     read_events_npy,
     read_flo,
@@ -194,7 +195,7 @@ def _json(path: Path) -> Any:
 
 def _npy(path: Path) -> np.ndarray:
     with builtins.open(path, "rb") as fh:
-        return np.load(fh, allow_pickle=False)
+        return load_npy(fh)
 
 
 def _pickle(path: Path) -> Any:

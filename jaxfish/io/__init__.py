@@ -91,6 +91,7 @@ from ._lut_cache import cached_lut as cached_lut
 from ._lut_cache import load_lut as load_lut
 from ._lut_cache import lut_cache_key as lut_cache_key
 from ._lut_cache import save_lut as save_lut
+from ._npz import load_npy as load_npy
 from ._npz import write_npz as write_npz
 from ._ocamcalib import load_ocamcalib as load_ocamcalib
 from ._ocamcalib import ocamcalib_from_text as ocamcalib_from_text

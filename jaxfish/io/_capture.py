@@ -50,7 +50,7 @@ from ._carla import (
 from ._folder import is_temporary
 from ._images import decode_image_bytes, read_image, write_image
 from ._json import read_json, regular_file, write_json
-from ._npz import write_npy_into
+from ._npz import load_npy, write_npy_into
 
 CAPTURE_FORMAT = "jaxfish-capture"
 """Format name and version stored in ``capture.json``."""
@@ -748,7 +748,7 @@ class CaptureReader:
     def _npy(self, path: Path, dtype=None, columns: int | None = None) -> np.ndarray:
         _existing(path)
         try:
-            a = np.load(path, allow_pickle=False)
+            a = load_npy(path)
         except (ValueError, OSError, EOFError) as e:
             raise CaptureError(f"{path}: not a readable .npy array ({e})") from None
         if dtype is not None and a.dtype != np.dtype(dtype):

@@ -11,7 +11,7 @@ import numpy as np
 from .._errors import ImageError
 from ._atomic import atomic_path
 from ._carla import DVS_EVENT_DTYPE
-from ._npz import NpzMember, write_npy_into, write_npz
+from ._npz import NpzMember, load_npy, write_npy_into, write_npz
 
 TONIC_EVENT_DTYPE = np.dtype([("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "i1")])
 """The tonic event dtype jaxfish writes: ``x, y`` int16, ``t`` int64 (µs), ``p`` int8 (1 / 0),
@@ -90,7 +90,7 @@ def read_events_npy(path: str | os.PathLike) -> np.ndarray:
     if not path.is_file():
         raise ImageError(f"{path}: file missing")
     try:
-        ev = np.load(path, allow_pickle=False)
+        ev = load_npy(path)
     except (ValueError, OSError, EOFError) as e:
         raise ImageError(f"{path}: not a readable .npy array ({e})") from None
     if ev.dtype != DVS_EVENT_DTYPE:

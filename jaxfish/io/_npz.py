@@ -71,6 +71,35 @@ def _write_member(fh, member: np.ndarray | NpzMember) -> None:
     write_npy_into(fh, member)
 
 
+def load_npy(file: str | os.PathLike | io.BufferedIOBase) -> np.ndarray:
+    """``np.load`` of a ``.npy`` file (a path, or a binary file open at its start) without pickles,
+    its header checked against the file's size first: a header claiming more data than the file
+    holds (a truncated or corrupt file) raises ``ValueError`` stating both sizes, where ``np.load``
+    would first allocate the claimed array (a ``MemoryError`` for a huge claim). Other faults raise
+    ``np.load``'s ``ValueError``, ``OSError`` or ``EOFError``."""
+    if not hasattr(file, "read"):
+        with open(file, "rb") as fh:
+            return load_npy(fh)
+    start = file.tell()
+    version = np.lib.format.read_magic(file)
+    if version == (1, 0):
+        shape, _fortran, dtype = np.lib.format.read_array_header_1_0(file)
+    elif version == (2, 0):
+        shape, _fortran, dtype = np.lib.format.read_array_header_2_0(file)
+    else:  # a version np.load reads with its own checks
+        file.seek(start)
+        return np.load(file, allow_pickle=False)
+    if not dtype.hasobject:
+        need = int(np.prod(shape, dtype=object)) * dtype.itemsize  # Python ints: no overflow
+        data = file.tell()
+        held = file.seek(0, os.SEEK_END) - data
+        if held < need:
+            raise ValueError(f"truncated .npy: its header declares a {dtype} array of shape {shape}, "
+                             f"{need} bytes of data, and the file holds {held}")
+    file.seek(start)
+    return np.load(file, allow_pickle=False)
+
+
 def write_npy_into(fh, arr: np.ndarray) -> None:
     """The bytes ``np.save(fh, arr, allow_pickle=False)`` writes, its data from the array's buffer
     in slices (`write_sliced`) when the array is C-contiguous and its header version 1.0."""

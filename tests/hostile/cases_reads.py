@@ -191,6 +191,22 @@ def _load_calibration(name: str):
     return call
 
 
+def _npy_claiming(relative: Path, rows: int):
+    """Setup: the ``.npy`` at ``relative`` with a header claiming ``rows`` rows (its data unchanged)."""
+
+    def setup(tmp: Path) -> None:
+        import io
+
+        path = tmp / relative
+        a = np.load(path)
+        head = io.BytesIO()
+        np.lib.format.write_array_header_1_0(head, {"descr": np.lib.format.dtype_to_descr(a.dtype),
+                                                    "fortran_order": False, "shape": (rows, *a.shape[1:])})
+        path.write_bytes(head.getvalue() + a.tobytes())
+
+    return setup
+
+
 CASES = [
     # File contents that lie about their format: a lossy JPEG read as labels or encoded depth.
     Case("reads-build-semantic-face-jpeg", BUILD, setup=_as_jpeg(FACE / "semantic_curr.png"), exit=1,
@@ -198,6 +214,11 @@ CASES = [
     Case("reads-build-depth-face-jpeg", BUILD, setup=_as_jpeg(FACE / "depth_prev.png"), exit=1,
          says=("depth_prev.png", "expected a lossless PNG file")),
     Case("reads-build-rgb-face-jpeg-is-read", BUILD, setup=_as_jpeg(FACE / "rgb_curr.png"), exit=0),
+    # A .npy header claiming far more data than the file holds: read as truncated, never allocated.
+    Case("reads-build-lidar-npy-huge-header", BUILD, setup=_npy_claiming(FRAME0 / "lidar.npy", 10**12), exit=1,
+         says=("lidar.npy", "truncated .npy", "the file holds")),
+    Case("reads-build-dvs-npy-huge-header", BUILD, setup=_npy_claiming(FACE / "dvs.npy", 10**12), exit=1,
+         says=("dvs.npy", "truncated .npy")),
     # Paths that are not regular files: refused before anything blocks reading them.
     Case("reads-build-face-fifo", BUILD, setup=_fifo(FACE / "depth_curr.png"), exit=1,
          says=("depth_curr.png", "FIFO")),
