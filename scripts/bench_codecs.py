@@ -106,7 +106,7 @@ def codec_table(repeats: int, tmp: Path) -> list[str]:
         enc = median_ms(lambda a3=a3: _png.encode_png(a3), repeats)
         dec = median_ms(lambda data=data: _png.decode_png(data), repeats)
         raw = a3.shape[0] * (a3.shape[1] * a3.shape[2] * a3.dtype.itemsize + 1)
-        libdeflate = _png._libdeflate is not None and raw >= _png.LIBDEFLATE_MIN_RATIO * len(data)  # as _png._decompress
+        libdeflate = _png.uses_libdeflate(raw, len(_png.parse_png(data).idat))
         inflate = "libdeflate" if libdeflate else _png.deflate_name()
         rows.append(f"| {name} | jaxfish ({_png.deflate_name()} level 1 + Up; {inflate} inflate + row sum) | {enc:.1f} | "
                     f"{dec:.1f} | {len(data) / px:.2f} |")

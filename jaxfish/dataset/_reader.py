@@ -193,11 +193,6 @@ def _json(path: Path) -> Any:
     return json.loads(path.read_bytes().decode("utf-8"))
 
 
-def _npy(path: Path) -> np.ndarray:
-    with builtins.open(path, "rb") as fh:
-        return load_npy(fh)
-
-
 def _pickle(path: Path) -> Any:
     with builtins.open(path, "rb") as fh:
         return pickle.load(fh)  # trusted dataset files only: pickle runs code
@@ -421,9 +416,9 @@ class SynWoodScapeDataset:
         if "rgb_prev" in f:
             v["rgb_prev"] = _guard(p(f"previous_images/{stem}_prev.png"), "rgb_prev", s, lambda q: _image(q, 3))
         if "depth" in f:
-            v["depth"] = _guard(p(f"depth_maps/raw_data/{stem}.npy"), "depth", s, _npy)
+            v["depth"] = _guard(p(f"depth_maps/raw_data/{stem}.npy"), "depth", s, load_npy)
         if "z_depth" in f and jax_layout:
-            v["z_depth"] = _guard(p(f"depth_maps/z_depth/{stem}.npy"), "z_depth", s, _npy)
+            v["z_depth"] = _guard(p(f"depth_maps/z_depth/{stem}.npy"), "z_depth", s, load_npy)
         if "semantics" in f:
             v["semantics"] = _guard(p(f"semantic_annotations/gtLabels/{stem}.png"), "semantics", s,
                                     lambda q: _image(q, 1, lossless=True))
@@ -589,7 +584,7 @@ class SynWoodScapeDataset:
     def _bev(self, s: str, semantics: np.ndarray | None) -> BevSample:
         grid = self._calibrations[BEV_CAMERA]
         stem = f"{s}_{BEV_CAMERA}"
-        height = _guard(self._path(f"bev_height/raw_data/{stem}.npy"), "bev", s, _npy)
+        height = _guard(self._path(f"bev_height/raw_data/{stem}.npy"), "bev", s, load_npy)
         occ = _guard(self._path(f"bev_occupancy/{stem}.png"), "bev", s, _mask)
         if semantics is None:
             semantics = _guard(self._path(f"semantic_annotations/gtLabels/{stem}.png"), "bev", s,
@@ -621,7 +616,7 @@ class SynWoodScapeDataset:
 
         if "lidar" in f:
             if veh.is_file():
-                pts = _guard(veh, "lidar", s, _npy)
+                pts = _guard(veh, "lidar", s, load_npy)
                 out["lidar_frame"] = LIDAR_FRAME_VEHICLE
             else:
                 pts = raw_record().get("points")
@@ -633,14 +628,14 @@ class SynWoodScapeDataset:
             out["lidar"] = pts
         if "semantic_lidar" in f:
             if sem.is_file():
-                arr = _guard(sem, "semantic_lidar", s, _npy)
+                arr = _guard(sem, "semantic_lidar", s, load_npy)
                 where = sem
             else:
                 arr, where = raw_record().get("semantic_lidar"), pkl
             out["semantic_lidar"] = _guard(where, "semantic_lidar", s, lambda _: _semantic_lidar(arr))
         if "radar" in f:
             if rad.is_file():
-                out["radar"] = _guard(rad, "radar", s, _npy)
+                out["radar"] = _guard(rad, "radar", s, load_npy)
             else:
                 r = raw_record().get("radar")
                 out["radar"] = None if r is None else _guard(pkl, "radar", s, lambda _: _structured(r))

@@ -34,7 +34,7 @@ from ..scene import (
     bev_camera,
     front_camera,
 )
-from ._atomic import atomic_copy_file, atomic_path
+from ._atomic import atomic_copy_file
 from ._calibration_json import load_rig, save_rig
 from ._carla import (
     DVS_EVENT_DTYPE,
@@ -50,7 +50,7 @@ from ._carla import (
 from ._folder import is_temporary
 from ._images import decode_image_bytes, read_image, write_image
 from ._json import read_json, regular_file, write_json
-from ._npz import load_npy, write_npy_into
+from ._npz import load_npy, write_npy
 
 CAPTURE_FORMAT = "jaxfish-capture"
 """Format name and version stored in ``capture.json``."""
@@ -70,12 +70,6 @@ def frame_dir(root: str | os.PathLike, frame: int) -> Path:
 
 def _json(path: Path, obj: Any) -> None:
     write_json(path, obj, indent=2, error=CaptureError)
-
-
-def write_npy(path: Path, arr: np.ndarray) -> None:
-    """Write ``arr`` as ``.npy`` (C order, no pickle), atomically."""
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        write_npy_into(fh, np.ascontiguousarray(arr))
 
 
 def _transform(loc, rot) -> dict[str, list[float]]:
@@ -369,14 +363,14 @@ def write_frame(
             fd = d / "cameras" / cam / face
             write_images(fd, cap.prev[face], "prev", copy_from=None if before is None else before / "cameras" / cam / face)
             write_images(fd, cap.curr[face], "curr")
-            write_npy(fd / "dvs.npy", np.asarray(cap.dvs[face]).astype(DVS_EVENT_DTYPE))
+            write_npy(fd / "dvs.npy", np.ascontiguousarray(np.asarray(cap.dvs[face]).astype(DVS_EVENT_DTYPE)))
     for name, (prev, curr, height) in views.items():
         write_images(d / name, prev, "prev", copy_from=None if before is None else before / name)
         write_images(d / name, curr, "curr")
         write_image(d / name / "height_curr.exr", np.asarray(height, np.float32))
-    write_npy(d / "lidar.npy", np.asarray(lidar, np.float32))
-    write_npy(d / "semantic_lidar.npy", np.asarray(semantic_lidar).astype(SEMANTIC_LIDAR_DTYPE))
-    write_npy(d / "radar.npy", np.asarray(radar).astype(RADAR_DTYPE))
+    write_npy(d / "lidar.npy", np.ascontiguousarray(lidar, np.float32))
+    write_npy(d / "semantic_lidar.npy", np.ascontiguousarray(np.asarray(semantic_lidar).astype(SEMANTIC_LIDAR_DTYPE)))
+    write_npy(d / "radar.npy", np.ascontiguousarray(np.asarray(radar).astype(RADAR_DTYPE)))
     _json(d / "imu.json", dict(imu))
     _json(d / "gnss.json", dict(gnss))
     _json(d / "ego.json", ego_record(frame))

@@ -9,9 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import ImageError
-from ._atomic import atomic_path
 from ._carla import DVS_EVENT_DTYPE
-from ._npz import NpzMember, load_npy, write_npy_into, write_npz
+from ._npz import NpzMember, load_npy, write_npy, write_npz
 
 TONIC_EVENT_DTYPE = np.dtype([("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "i1")])
 """The tonic event dtype jaxfish writes: ``x, y`` int16, ``t`` int64 (µs), ``p`` int8 (1 / 0),
@@ -79,8 +78,7 @@ def write_events_npy(path: str | os.PathLike, events: np.ndarray) -> Path:
     ev = _structured_events(events, path)
     if ev.dtype != DVS_EVENT_DTYPE:
         ev = ev.astype(DVS_EVENT_DTYPE)  # same fields, other widths or order
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        write_npy_into(fh, np.ascontiguousarray(ev))
+    write_npy(path, np.ascontiguousarray(ev))
     return path
 
 

@@ -14,11 +14,11 @@ from typing import Any
 import numpy as np
 
 from .._errors import ImageError
-from ._atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from ._atomic import atomic_write_bytes, atomic_write_text
 from ._exr import exr_z_bytes
 from ._images import PNG_LEVEL, metadata_text, read_image, read_image_metadata, write_image
 from ._json import write_json
-from ._npz import write_npy_into
+from ._npz import write_npy
 
 PALETTE_ATTRIBUTE = "jaxfish:palette"
 """Metadata key of the palette JSON in colour label PNGs."""
@@ -167,10 +167,7 @@ def read_displacements(path: str | os.PathLike) -> dict[int, float]:
 
 def write_depth_npy(path: str | os.PathLike, depth_m: np.ndarray) -> Path:
     """Depth map as float32 ``.npy`` (metres; range or z-depth as documented by the caller; sky 1000)."""
-    path = Path(path)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        write_npy_into(fh, np.asarray(depth_m, np.float32))
-    return path
+    return write_npy(path, np.asarray(depth_m, np.float32))
 
 
 DEPTH_ATTRIBUTE = "jaxfish:depth"

@@ -76,7 +76,8 @@ def load_npy(file: str | os.PathLike | io.BufferedIOBase) -> np.ndarray:
     its header checked against the file's size first: a header claiming more data than the file
     holds (a truncated or corrupt file) raises ``ValueError`` stating both sizes, where ``np.load``
     would first allocate the claimed array (a ``MemoryError`` for a huge claim). Other faults raise
-    ``np.load``'s ``ValueError``, ``OSError`` or ``EOFError``."""
+    ``np.load``'s ``ValueError``, ``OSError`` or ``EOFError``. The check reads headers of versions
+    1.0 and 2.0; a version 3.0 header (NumPy's, for non-Latin-1 field names) is left to ``np.load``."""
     if not hasattr(file, "read"):
         with open(file, "rb") as fh:
             return load_npy(fh)
@@ -98,6 +99,14 @@ def load_npy(file: str | os.PathLike | io.BufferedIOBase) -> np.ndarray:
                              f"{need} bytes of data, and the file holds {held}")
     file.seek(start)
     return np.load(file, allow_pickle=False)
+
+
+def write_npy(path: str | os.PathLike, arr: np.ndarray) -> Path:
+    """Write ``arr`` as ``.npy`` atomically: the bytes ``np.save(..., allow_pickle=False)`` writes
+    (`write_npy_into`)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        write_npy_into(fh, arr)
+    return Path(path)
 
 
 def write_npy_into(fh, arr: np.ndarray) -> None:

@@ -102,11 +102,17 @@ output buffer is the smaller of this bound and the image's size, so that an IHDR
 image over a small IDAT reads as a truncated file instead of allocating the image."""
 
 
+def uses_libdeflate(size: int, stream_bytes: int) -> bool:
+    """Whether `decode_png` inflates a zlib stream of ``stream_bytes`` holding ``size`` bytes of
+    filtered rows with libdeflate (module docstring)."""
+    return _libdeflate is not None and size >= LIBDEFLATE_MIN_RATIO * stream_bytes
+
+
 def _decompress(data: bytes, size: int) -> bytes | bytearray:
     """The inflated zlib stream ``data`` of an image whose filtered rows hold ``size`` bytes (the
     stream's own length when it differs: the caller checks)."""
     buffer = max(min(size, DEFLATE_MAX_RATIO * len(data) + 64), 1)
-    if _libdeflate is not None and size >= LIBDEFLATE_MIN_RATIO * len(data):
+    if uses_libdeflate(size, len(data)):
         try:
             return _libdeflate.zlib_decompress(data, buffer)
         except _libdeflate.DeflateError:

@@ -201,7 +201,7 @@ def test_fields_selection_reads_nothing_else(built, monkeypatch):
             return fn(path, *args, **kwargs)
         return wrapped
 
-    for name in ("read_image", "read_flo", "read_events_npy", "read_boxes_2d_csv", "_npy", "_pickle", "_json",
+    for name in ("read_image", "read_flo", "read_events_npy", "read_boxes_2d_csv", "load_npy", "_pickle", "_json",
                  "_vehicle_text", "load_bev_calibration"):
         monkeypatch.setattr(_reader, name, spy(getattr(_reader, name)))
     ds = jd.open(built, fields={"rgb", "semantics"})
