@@ -14,7 +14,7 @@ def merge(
     folder: Path = typer.Argument(..., help="Dataset (or capture) folder the shards wrote into."),
     capture: Path | None = typer.Option(None, "--capture", help="The capture the shards were built from "
                                         "(default: the path their records name)."),
-    verify: bool = typer.Option(False, "--verify", help="Also check every sample file's SHA-256 against its marker."),
+    verify: bool = typer.Option(False, "--verify", help="Also check every sample file's digest (BLAKE3; SHA-256 in older markers) against its marker."),
 ) -> None:
     """Check that every shard of a `jaxfish build --shard I/N` (or `jaxfish synth --shard I/N`)
     split has finished (all N shard records in .shards/, one N, the same frames, options and

@@ -3,7 +3,7 @@
 Each sample is a pure function of (capture, frame, options): `build_sample` reads the capture's
 frame, computes every camera's ground truth and writes the sample's files atomically, then its
 completion marker ``.done/{sample}.json`` (the capture's fingerprint, the options, the files and
-their SHA-256) last. `build_dataset` writes only into a new, empty or jaxfish dataset folder, which
+their BLAKE3 digests) last. `build_dataset` writes only into a new, empty or jaxfish dataset folder, which
 it locks; it removes the temporary files a killed run left behind, refuses a folder whose samples
 another capture or other options made (unless asked to rebuild them), skips complete samples, runs
 the remaining samples serially or on a dask.distributed cluster (the bytes are the same), reports
@@ -28,6 +28,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import blake3
 import numpy as np
 
 from .._errors import JaxfishError
@@ -214,11 +215,18 @@ def _running():
 
 
 # ------------------------------------------------------------------------------------- one sample
-def sha256_file(path: Path) -> str:
-    """SHA-256 (hex) of a file's bytes (read through one small reused buffer, not into one large
-    new object)."""
+MARKER_DIGEST = "blake3"
+"""The digest a completion marker records for each of its sample's files (its field ``digest``;
+a marker without that field records SHA-256, `MARKER_DIGESTS`)."""
+MARKER_DIGESTS: dict[str, Callable[[], Any]] = {"blake3": blake3.blake3, "sha256": hashlib.sha256}
+"""The digests a marker may record, by name: hashlib-style constructors."""
+
+
+def file_digest(path: Path, algorithm: str = MARKER_DIGEST) -> str:
+    """Hex digest of a file's bytes by ``algorithm`` (a key of `MARKER_DIGESTS`; read through one
+    small reused buffer, not into one large new object)."""
     with open(path, "rb") as fh:
-        return hashlib.file_digest(fh, "sha256").hexdigest()
+        return hashlib.file_digest(fh, MARKER_DIGESTS[algorithm]).hexdigest()
 
 
 class _Extras(NamedTuple):
@@ -264,9 +272,10 @@ def build_sample(source, out_dir: str | os.PathLike, frame: int, options: BuildO
     into ``out_dir`` and write its marker last.
 
     Pure in (source, frame, options): the same inputs give the same bytes in any process.
-    Returns ``{"sample", "frame", "layout_version", "options", "source", "files"}`` (the marker's
-    content): ``options`` as `BuildOptions.to_dict`, ``source`` the source's fingerprint plus
-    ``frames/{frame:06d}`` (`FrameSource.frame_fingerprint`), ``files`` ``{relative path: sha256}``.
+    Returns ``{"sample", "frame", "layout_version", "options", "source", "digest", "files"}`` (the
+    marker's content): ``options`` as `BuildOptions.to_dict`, ``source`` the source's fingerprint
+    plus ``frames/{frame:06d}`` (`FrameSource.frame_fingerprint`), ``digest`` `MARKER_DIGEST`,
+    ``files`` ``{relative path: hex digest}``.
     Raises on a missing or corrupt capture file (`jaxfish.io.CaptureError` naming the file)."""
     return build_samples(source, out_dir, [frame], options)[0]
 
@@ -326,13 +335,13 @@ def _write_sample(source, out: Path, truth: SampleTruth, options: BuildOptions, 
     sid = sample_id(frame)
     sink = LayoutSink(out, png_level=options.png_level, motion_threshold_m=options.motion_threshold_m,
                       backward_flow=options.backward_flow)
-    written: list[tuple[Path, str]] = []  # (file, SHA-256), hashed by the thread that wrote it
+    written: list[tuple[Path, str]] = []  # (file, digest), hashed by the thread that wrote it
     pool = concurrent.futures.ThreadPoolExecutor(options.write_threads) if options.write_threads > 0 else None
     pending: list[concurrent.futures.Future] = []
 
     def hashed(fn, *args) -> list[tuple[Path, str]]:
         _check_stop()
-        return [(p, sha256_file(p)) for p in fn(*args)]  # the bytes are still in the page cache
+        return [(p, file_digest(p)) for p in fn(*args)]  # the bytes are still in the page cache
 
     jobs = sink.jobs(sid, truth)[:-1]  # the sensor files go through the `_sample_extras` hook
     extras = _Extras(truth.sensors, f"{source.where}: frame {frame} ego record")
@@ -359,7 +368,7 @@ def _write_sample(source, out: Path, truth: SampleTruth, options: BuildOptions, 
             remove_sample_files(out, sid)
     files = {p.relative_to(out).as_posix(): digest for p, digest in written}
     marker = {"sample": sid, "frame": frame, "layout_version": LAYOUT_VERSION, "options": options.to_dict(),
-              "source": record, "files": dict(sorted(files.items()))}
+              "source": record, "digest": MARKER_DIGEST, "files": dict(sorted(files.items()))}
     write_json(out / DONE_DIR / f"{sid}.json", marker, indent=1, error=DatasetError)
     return marker
 

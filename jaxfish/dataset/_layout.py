@@ -141,7 +141,7 @@ DATASET_FILES: tuple[dict[str, Any], ...] = (
      "description": "sequences of consecutive samples and each sample's neighbours ({'sequences': [{'name', "
                     "'samples', 'dt_s'}], 'neighbours': {sample: {'previous', 'next'}}})"},
     {"key": "done", "pattern": ".done/{sample}.json", "format": "json",
-     "description": "completion marker of a sample (written last): its files and their SHA-256"},
+     "description": "completion marker of a sample (written last): its files and their digests (BLAKE3)"},
 )
 """Files written once per dataset (not per sample)."""
 

@@ -16,7 +16,14 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ._build import finish_dataset, is_complete, marker_differences, remove_stale_temporaries, sha256_file
+from ._build import (
+    MARKER_DIGESTS,
+    file_digest,
+    finish_dataset,
+    is_complete,
+    marker_differences,
+    remove_stale_temporaries,
+)
 from ._layout import LAYOUT_VERSION, sample_id
 from ._options import DONE_DIR, BuildOptions, DatasetError, sample_span
 from ._shards import SHARDS_DIR, Shard, check_same_split, remove_shard_records, reopen_source, shard_records
@@ -49,9 +56,10 @@ def merge_shards(folder: str | os.PathLike, *, source=None, verify: bool = False
     one split (one N; the same requested frames, options, layout version and source fingerprint) and
     that every sample each lists is complete (its ``.done`` marker present, of this layout version,
     with the build's options and the source's fingerprint, every file it lists present; with
-    ``verify`` also each file's SHA-256); every other marker in the folder must match the build too,
-    as a whole build requires. Then writes what the end of a whole build writes (`finish_dataset`:
-    ``dataset.json``, ``calibration_data``, ...), removes the temporary files killed runs left and
+    ``verify`` also each file's digest, by the algorithm its marker's field ``digest`` names);
+    every other marker in the folder must match the build too, as a whole build requires. Then
+    writes what the end of a whole build writes (`finish_dataset`: ``dataset.json``,
+    ``calibration_data``, ...), removes the temporary files killed runs left and
     the shard records. A missing shard, a record of another split, a corrupt record or an
     incomplete sample raises `DatasetError` naming it, and nothing is written.
 
@@ -156,10 +164,14 @@ def _check_samples(out: Path, requested: list[str], options: BuildOptions, sourc
             raise DatasetError(f"{marker}: sample {marker.stem} was made from another capture or with other options "
                                f"than the shards ({'; '.join(diffs)}): rebuild it (jaxfish build --rebuild ...)")
         if verify and marker.stem in owner:
+            algorithm = doc.get("digest", "sha256")  # a marker without the field records SHA-256
+            if not isinstance(algorithm, str) or algorithm not in MARKER_DIGESTS:
+                raise DatasetError(f"{marker}: field 'digest' is {algorithm!r}, not one of "
+                                   f"{', '.join(sorted(MARKER_DIGESTS))}: rebuild sample {marker.stem}")
             for rel, digest in doc.get("files", {}).items():
-                if sha256_file(out / rel) != digest:
-                    raise DatasetError(f"{out / rel}: its SHA-256 differs from {marker}'s field 'files': the file "
-                                       f"changed after its sample was built; rebuild sample {marker.stem}")
+                if file_digest(out / rel, algorithm) != digest:
+                    raise DatasetError(f"{out / rel}: its {algorithm} digest differs from {marker}'s field 'files': "
+                                       f"the file changed after its sample was built; rebuild sample {marker.stem}")
 
 
 # ------------------------------------------------------------------------------------ captures

@@ -142,10 +142,35 @@ def test_the_merge_refuses_a_missing_shard_another_split_a_corrupt_record_or_an_
         (out / "rgb_images" / "00001_FV.png").write_bytes(b"x")
     out = _copy(two_shards, tmp_path / "changed")
     changed(out)
-    with pytest.raises(DatasetError, match="00001_FV.png: its SHA-256 differs"):
+    with pytest.raises(DatasetError, match="00001_FV.png: its blake3 digest differs"):
         merge_shards(out, verify=True)
     code, _, err = run_cli(["merge", str(tmp_path / "nowhere")], capsys)
     assert code == 2 and "not a folder" in err
+
+
+def test_markers_record_blake3_digests_and_the_merge_verifies_older_sha256_markers(two_shards, tmp_path):
+    """A marker lists its files' BLAKE3 digests (field ``digest``: ``blake3``); ``verify`` checks a
+    marker without that field (an older build's) by SHA-256, and refuses an unknown algorithm."""
+    import hashlib
+
+    import blake3
+
+    out = _copy(two_shards, tmp_path / "dataset")
+    marker = out / ".done" / "00001.json"
+    doc = json.loads(marker.read_text())
+    assert doc["digest"] == "blake3" and doc["files"]
+    for rel, digest in doc["files"].items():
+        assert blake3.blake3((out / rel).read_bytes()).hexdigest() == digest, rel
+    old = {k: v for k, v in doc.items() if k != "digest"}
+    old["files"] = {rel: hashlib.sha256((out / rel).read_bytes()).hexdigest() for rel in doc["files"]}
+    marker.write_text(json.dumps(old))
+    merge_shards(_copy(out, tmp_path / "older"), verify=True)  # the SHA-256 marker verifies
+    (out / "rgb_images" / "00001_FV.png").write_bytes(b"x")
+    with pytest.raises(DatasetError, match="00001_FV.png: its sha256 digest differs"):
+        merge_shards(out, verify=True)
+    marker.write_text(json.dumps(doc | {"digest": "md5"}))
+    with pytest.raises(DatasetError, match=r"00001.json: field 'digest' is 'md5', not one of blake3, sha256"):
+        merge_shards(out, verify=True)
 
 
 def test_the_merge_refuses_a_capture_the_shards_were_not_built_from(capture3, two_shards, tmp_path):

@@ -177,8 +177,8 @@ def test_each_stage_of_a_sample_runs_once(small_capture, reference_build, tmp_pa
     monkeypatch.setattr(_build, "rig_constants", lambda *a, **k: calls["constants"].append(1) or build_constants(*a, **k))
     monkeypatch.setattr(_build, "sample_truths",
                         lambda frames, *a: calls["truth"].append([f.index for f in frames]) or truths(frames, *a))
-    hashed = _build.sha256_file
-    monkeypatch.setattr(_build, "sha256_file", lambda p: calls["files"].append(p) or hashed(p))
+    hashed = _build.file_digest
+    monkeypatch.setattr(_build, "file_digest", lambda p: calls["files"].append(p) or hashed(p))
     clear_worker_cache()
     out = tmp_path / "dataset"
     report = build_dataset(small_capture, out)
