@@ -64,14 +64,24 @@ def fail(message: str, code: int = 2) -> typer.Exit:
     return typer.Exit(code)
 
 
-def check_outputs(**paths: object) -> None:
-    """Refuse output paths that are directories before any work (``--out DIR`` would fail only at
-    the end, after other outputs were written)."""
+def check_outputs(directories: tuple[str, ...] = (), **paths: object) -> None:
+    """Refuse, before any work, output paths (options by name, None: not given) that are
+    directories (``--out DIR`` would fail only at the end, after other outputs were written),
+    except the options named in ``directories``, and two options naming the same file (the second
+    write would replace the first)."""
     from pathlib import Path
 
-    for option, path in paths.items():
-        if path is not None and Path(str(path)).is_dir():
+    given = {option: Path(str(path)) for option, path in paths.items() if path is not None}
+    for option, path in given.items():
+        if option not in directories and path.is_dir():
             raise fail(f"--{option.replace('_', '-')} {path}: is a directory, expected a file path")
+    seen: dict[Path, str] = {}
+    for option, path in given.items():
+        key = path.resolve()
+        if key in seen:
+            raise fail(f"--{option.replace('_', '-')} {path}: the same file as --{seen[key].replace('_', '-')}; "
+                       f"give each output its own path")
+        seen[key] = option
 
 
 def main() -> None:

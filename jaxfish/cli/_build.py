@@ -16,7 +16,8 @@ from ._app import app, console, fail, note, say
 
 def parse_frames(text: str | None, available: Sequence[int] | None = None, *, source: str = "the capture"
                  ) -> list[int] | None:
-    """``"0,2,5-7"`` -> ``[0, 2, 5, 6, 7]``; None / empty -> None (every frame).
+    """``"0,2,5-7"`` -> ``[0, 2, 5, 6, 7]``; None / empty -> None (every frame); a text that
+    names no frame (``","``) is refused.
 
     ``available``: the capture's frames (named ``source`` in messages). Every listed frame must be
     one of them, and a range is checked against them before it is expanded (``0-999999999`` names
@@ -39,6 +40,8 @@ def parse_frames(text: str | None, available: Sequence[int] | None = None, *, so
         except ValueError as e:
             raise fail(f"--frames: cannot read {part!r} (use e.g. 0,2,5-7)") from e
         spans.append((a, b))
+    if not spans:
+        raise fail(f"--frames: {text!r} names no frame (use e.g. 0,2,5-7)")
     if available is None:
         return [f for a, b in spans for f in range(a, b + 1)]
     have = set(available)

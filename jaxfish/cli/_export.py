@@ -3,12 +3,13 @@ basalt, CARLA), converting a lens model the format lacks first."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 from pathlib import Path
 
 import typer
 
-from ._app import app, fail, print_warning, say
+from ._app import app, check_outputs, fail, print_warning, say
 
 DEFAULT_TARGETS = ("kannala_brandt", "carla_wide_angle", "mei", "opencv", "double_sphere", "pinhole")
 """The model a camera is converted to when the format lacks its own and ``--to`` is not given:
@@ -41,8 +42,7 @@ def export(
         raise fail(f"--format {fmt!r}: expected one of {', '.join(EXPORT_FORMATS)}")
     if not (math.isfinite(max_error) and max_error > 0):
         raise fail(f"--max-error must be a positive number of pixels, got {max_error}")
-    if report is not None and report.is_dir():
-        raise fail(f"--report {report}: is a directory, expected a file path")
+    check_outputs(out=out, report=report, directories=("out",))
     folder_out = fmt == "colmap"
     if not folder_out and fmt != "opencv" and out.is_dir():
         raise fail(f"--out {out}: is a directory, expected a file path ({fmt} writes one file)")
@@ -131,12 +131,23 @@ def export(
     from ..io._json import to_json_text
 
     report_text = None if report is None else to_json_text(report, {"format": fmt, "cameras": rows}, indent=2)
+    existed = out.exists()
+    before = set(out.iterdir()) if out.is_dir() else ({out} if existed else set())
     try:
         paths = export_calibrations(written, fmt, out)
     except ValueError as e:
         raise fail(str(e), code=1) from None
     if report is not None and report_text is not None:
-        atomic_write_text(report, report_text)
+        try:
+            atomic_write_text(report, report_text)
+        except OSError as e:  # both or neither: the files this run made go again
+            for p in paths:
+                if Path(p) not in before:
+                    Path(p).unlink(missing_ok=True)
+            if folder_out and not existed:
+                with contextlib.suppress(OSError):
+                    out.rmdir()  # only when empty
+            raise fail(f"--report {report}: {e.strerror or e}; {out} not written either") from None
     for p in paths:
         say(f"wrote {p}")
 

@@ -61,7 +61,7 @@ class SampleView:
 def _sample_id(text: str) -> str:
     from .._errors import JaxfishError
 
-    if not text.isdigit():
+    if not (text.isascii() and text.isdigit()) or len(text) > 12:
         raise JaxfishError(f"SAMPLE {text!r}: expected a sample id such as 00000")
     return f"{int(text):05d}"
 

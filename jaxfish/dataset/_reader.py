@@ -746,7 +746,7 @@ def open(path: str | os.PathLike, *, fields: Iterable[str] | None = None,  # noq
             raise _fail(manifest_path, "format", None, f"expected {DATASET_FORMAT!r}, got {got!r}")
         layout = LAYOUT_JAXFISH
         samples = manifest.get("samples")
-        if not isinstance(samples, list) or not all(isinstance(x, str) and x.isdigit() for x in samples):
+        if not isinstance(samples, list) or not all(isinstance(x, str) and x.isascii() and x.isdigit() for x in samples):
             raise _fail(manifest_path, "samples", None, "expected a list of sample ids (strings of digits)")
         found = manifest.get("cameras")
         if not isinstance(found, list) or not all(isinstance(x, str) for x in found):

@@ -227,7 +227,7 @@ def dask_setup(worker) -> None:
     and the write threads of that worker then fit its share. Does nothing in a worker without
     `BUILD_PID_ENV` or in the building process itself (thread workers)."""
     pid = os.environ.get(BUILD_PID_ENV, "")
-    if not pid.isdigit() or int(pid) == os.getpid():
+    if not (pid.isascii() and pid.isdigit()) or int(pid) == os.getpid():
         return
     share = _share_of(getattr(worker, "name", None), os.environ.get(CORE_SHARES_ENV, ""))
     if share is not None and hasattr(os, "sched_setaffinity"):

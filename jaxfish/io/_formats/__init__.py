@@ -172,8 +172,9 @@ def load_camera_calibration(path: str | os.PathLike, *, dtype=None, camera: str 
         text, camera = text.rsplit("::", 1)
     path = Path(text)
     fmt = detect_calibration_format(path)
-    if fmt == "jaxfish":
-        return camera_calibration_from_dict(read_json(path, CalibrationError), source=str(path), dtype=dtype)
+    if fmt == "jaxfish":  # one camera: ``camera`` must name it (its name or index 0) when given
+        calib = camera_calibration_from_dict(read_json(path, CalibrationError), source=str(path), dtype=dtype)
+        return select_camera([calib], path, camera)
     return select_camera(read_calibration_file(path, dtype=dtype, fmt=fmt), path, camera)
 
 
@@ -211,7 +212,7 @@ def select_camera(calibs: list[Calibration], path: Path, camera: str | None) -> 
                                f"({path}::NAME)")
     if camera in names:
         return calibs[names.index(camera)]
-    if camera.isdigit() and int(camera) < len(calibs):
+    if camera.isascii() and camera.isdigit() and int(camera) < len(calibs):
         return calibs[int(camera)]
     raise CalibrationError(f"{path}: no camera {camera!r} (cameras: {', '.join(names)})")
 
