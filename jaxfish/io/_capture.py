@@ -506,6 +506,8 @@ def _check_header(meta: dict[str, Any], header: Path) -> None:
     cams = meta["cameras"]
     if not isinstance(cams, list) or not all(isinstance(c, str) and c and "/" not in c for c in cams):
         raise bad("cameras", "a list of camera names")
+    if len(set(cams)) != len(cams):
+        raise bad("cameras", "distinct camera names")
     faces = meta["faces"]
     known = FIVE_FACES + ("back",)
     if not isinstance(faces, list) or not faces or not all(f in known for f in faces) or len(set(faces)) != len(faces):

@@ -70,6 +70,8 @@ def correspondence_array(value: Any, cols: int | None, source: str, field: str) 
     """A finite float64 array of ``cols``-vectors (or numbers), at most `MAX_CORRESPONDENCE_VALUE` in
     magnitude; `CorrespondenceError` naming the file and field otherwise."""
     try:
+        if np.asarray(value).dtype.kind not in "iuf":  # strings ("1"), booleans, ragged lists: not numbers
+            raise TypeError
         a = np.asarray(value, dtype=np.float64)
     except OverflowError:  # an integer beyond ~1.8e308
         raise CorrespondenceError(f"{source}: field '{field}': values must be finite") from None
@@ -125,6 +127,9 @@ def correspondences_from_dict(data: Any, *, source: str = "<correspondences>", d
         name = view.get("name", f"view{i}")
         if not isinstance(name, str):
             raise CorrespondenceError(f"{source}: field '{where}.name': expected a string")
+        if name in names:  # each view has a pose of its own, reported under its name
+            raise CorrespondenceError(f"{source}: field '{where}.name': {name!r} names views[{names.index(name)}] "
+                                      f"too; each view needs its own name")
         pts.append(p)
         pix.append(q)
         wts.append(w)
