@@ -32,15 +32,26 @@ FISHEYES = ("FV", "MVL", "MVR", "RV")
 NO_LABEL = 255
 
 
-def _load_npy(path: Path):
-    """A dataset ``.npy`` array; a corrupt file is a `JaxfishError` naming it."""
+def _load_npy(path: Path, shape: tuple[int, int], what: str, calibration: str):
+    """A dataset ``.npy`` map of real numbers (an integer or float dtype) of ``shape`` (rows,
+    columns: what ``calibration`` gives), as float32; a corrupt file, another dtype (strings,
+    booleans, complex, structured) or another shape is a `JaxfishError` naming the file, ``what``
+    it is and the dtype or shape."""
+    import numpy as np
+
     from .._errors import JaxfishError
     from ..io import load_npy
 
     try:
-        return load_npy(path)
+        arr = load_npy(path)
     except (ValueError, OSError, EOFError) as e:
         raise JaxfishError(f"{path}: not a readable .npy array ({e})") from None
+    if arr.dtype.fields is not None or arr.dtype.kind not in "fiu":
+        raise JaxfishError(f"{path}: dtype {arr.dtype}: {what} must hold real numbers (float32 metres)")
+    if arr.shape != tuple(shape):
+        raise JaxfishError(f"{path}: shape {arr.shape}: {what} must have shape {tuple(shape)} ({shape[1]} x {shape[0]} "
+                           f"pixels, as {calibration} gives)")
+    return arr.astype(np.float32)
 
 
 def _parse_frames(text: str | None, available: list[int]) -> list[int]:
@@ -167,13 +178,13 @@ def _dataset_items(source: Path, samples: str | None):
             p = depth_dir / f"{sid}_{n}.npy"
             if not p.is_file():
                 raise JaxfishError(f"{p}: range map missing")
-            r = _load_npy(p)
+            r = _load_npy(p, (c.camera.height, c.camera.width), f"{n}'s range map", f"calibration_data/{n}.json")
             lab_path = source / "semantic_annotations" / "gtLabels" / f"{sid}_{n}.png"
             lab = read_label_png(lab_path)
-            if r.shape != (c.camera.height, c.camera.width) or lab.shape != r.shape:
-                raise JaxfishError(f"{p}: range {r.shape} / labels {lab.shape} do not match {n}'s calibration "
+            if lab.shape != r.shape:
+                raise JaxfishError(f"{lab_path}: labels {lab.shape} do not match {n}'s calibration "
                                    f"{c.camera.width} x {c.camera.height}")
-            rng.append(r.astype(np.float32))
+            rng.append(r)
             sem.append(lab)
         rng_a = np.stack(rng)
         maps = {"names": names, "cameras": cameras, "cameras_to_vehicle": [c.camera_to_vehicle for c in calibs],
@@ -186,7 +197,8 @@ def _dataset_items(source: Path, samples: str | None):
             if tsem.shape != (cam.height, cam.width):
                 raise JaxfishError(f"{tpath}: {tsem.shape} does not match BEV.json's {cam.width} x {cam.height}")
             hpath = source / "bev_height" / "raw_data" / f"{sid}_BEV.npy"
-            height = _load_npy(hpath).astype(np.float32) if hpath.is_file() else None
+            height = _load_npy(hpath, (cam.height, cam.width), "the BEV height map", "calibration_data/BEV.json") \
+                if hpath.is_file() else None
             occ = np.asarray(jbev.occupancy_map(height)) if height is not None else None
             truth = {"semantic": tsem, "height_m": height, "occupancy": occ}
         yield sid, cam, pose, maps, truth

@@ -74,15 +74,14 @@ def merge_shards(folder: str | os.PathLike, *, source=None, verify: bool = False
 
     with folder_lock(out, DatasetError, "build"):
         records = shard_records(out)
-        kinds = {doc.get("kind") for doc in records.values()}
-        if kinds == {"capture"}:
+        if records and all(doc.get("kind") == "capture" for doc in records.values()):
             return merge_capture_shards(out, records)
         count, first = check_same_split(records, out, _DATASET_FIELDS, DatasetError, "build")
         if first.get("kind") != "dataset":
             raise DatasetError(f"{next(iter(records))}: field 'kind' is {first.get('kind')!r}, expected 'dataset' "
                                f"or 'capture'")
         where = str(next(iter(records)))
-        _check_split(records, count)
+        _check_split(records, count, "dataset")
         if source is None:
             source = reopen_source(first.get("origin"), where)
         from ._sources import as_source
@@ -103,27 +102,38 @@ def merge_shards(folder: str | os.PathLike, *, source=None, verify: bool = False
         return MergeReport(out, "dataset", count, tuple(first["requested"]))
 
 
-def _check_split(records: dict[Path, dict[str, Any]], count: int) -> None:
-    """Every record lists the samples the rule gives its shard of the requested ones."""
+def _check_split(records: dict[Path, dict[str, Any]], count: int, kind: str) -> None:
+    """Every record's fields ``requested`` and ``samples`` are lists of ids (``kind`` "dataset":
+    sample ids, `sample_id`; "capture": frame numbers), and ``samples`` is what the rule gives its
+    shard of ``requested``; else `DatasetError` naming the record and the field."""
+    is_id, what = (_is_sample_id, "sample ids such as \"00001\"") if kind == "dataset" else (_is_frame, "frame numbers")
     for path, doc in records.items():
-        requested, samples = doc.get("requested"), doc.get("samples", doc.get("frames"))
-        for field, value in (("requested", requested), ("samples", samples)):
-            if not isinstance(value, list) or not all(_is_id(v) for v in value):
-                raise DatasetError(f"{path}: field {field!r}: expected a list of sample ids")
-        try:
-            expect = Shard(doc["shard"][0], count).select([int(v) for v in requested])
-        except ValueError:
-            raise DatasetError(f"{path}: field 'requested': expected a list of sample ids") from None
+        for field in ("requested", "samples"):
+            value = doc.get(field)
+            if field not in doc:
+                raise DatasetError(f"{path}: field {field!r} missing: expected a list of {what}")
+            if not isinstance(value, list) or not all(is_id(v) for v in value):
+                raise DatasetError(f"{path}: field {field!r}: expected a list of {what}")
+        requested, samples = doc["requested"], doc["samples"]
+        expect = Shard(doc["shard"][0], count).select([int(v) for v in requested])
         if [int(v) for v in samples] != expect:
             raise DatasetError(f"{path}: field 'samples' is not shard {doc['shard'][0]}/{count} of field 'requested' "
                                f"(the shards' rule: the k-th sorted frame goes to shard k mod N)")
 
 
-def _is_id(value: Any) -> bool:
-    """A sample id (``"00001"``, `sample_id`) or a frame number (a capture shard's)."""
-    if isinstance(value, int) and not isinstance(value, bool):
-        return value >= 0
-    return isinstance(value, str) and value.isascii() and value.isdigit() and sample_id(int(value)) == value
+def _is_sample_id(value: Any) -> bool:
+    """A sample id (``"00001"``, `sample_id`): a dataset shard's."""
+    if not (isinstance(value, str) and value.isascii() and value.isdigit()):
+        return False
+    try:
+        return sample_id(int(value)) == value
+    except ValueError:  # more digits than int() converts
+        return False
+
+
+def _is_frame(value: Any) -> bool:
+    """A frame number (an integer >= 0): a capture shard's."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
 def _options_of(record: dict[str, Any], where: str) -> BuildOptions:
@@ -132,7 +142,7 @@ def _options_of(record: dict[str, Any], where: str) -> BuildOptions:
         raise DatasetError(f"{where}: field 'options': expected an object")
     try:
         return BuildOptions(**{k: opts[k] for k in ("backward_flow", "bev", "motion_threshold_m", "png_level")})
-    except (KeyError, TypeError) as e:
+    except (KeyError, TypeError, ValueError) as e:  # ValueError: BuildOptions' DatasetError (a JaxfishError)
         raise DatasetError(f"{where}: field 'options' is malformed ({type(e).__name__}: {e})") from None
 
 
@@ -143,6 +153,13 @@ def _check_samples(out: Path, requested: list[str], options: BuildOptions, sourc
     wanted, capture = options.to_dict(), source.fingerprint()
     incomplete: list[str] = []
     for sid in requested:
+        marker = out / DONE_DIR / f"{sid}.json"
+        try:
+            doc = json.loads(marker.read_text())
+        except (OSError, ValueError):
+            doc = None  # missing or unreadable: not complete
+        if isinstance(doc, dict) and doc.get("layout_version") == LAYOUT_VERSION and "files" in doc:
+            _marker_files(marker, doc)
         if not is_complete(out, sid):
             incomplete.append(sid)
     if incomplete:
@@ -168,10 +185,25 @@ def _check_samples(out: Path, requested: list[str], options: BuildOptions, sourc
             if not isinstance(algorithm, str) or algorithm not in MARKER_DIGESTS:
                 raise DatasetError(f"{marker}: field 'digest' is {algorithm!r}, not one of "
                                    f"{', '.join(sorted(MARKER_DIGESTS))}: rebuild sample {marker.stem}")
-            for rel, digest in doc.get("files", {}).items():
+            for rel, digest in _marker_files(marker, doc).items():
                 if file_digest(out / rel, algorithm) != digest:
                     raise DatasetError(f"{out / rel}: its {algorithm} digest differs from {marker}'s field 'files': "
                                        f"the file changed after its sample was built; rebuild sample {marker.stem}")
+
+
+def _marker_files(marker: Path, doc: dict[str, Any]) -> dict[str, str]:
+    """A completion marker's field ``files``: {path relative to the dataset folder, inside it:
+    digest}; anything else raises `DatasetError` naming the marker and the field."""
+    files = doc.get("files")
+    if not isinstance(files, dict):
+        raise DatasetError(f"{marker}: field 'files': expected an object {{relative file path: digest}}, got "
+                           f"{type(files).__name__}: rebuild sample {marker.stem}")
+    for rel, digest in files.items():
+        parts = Path(rel).parts
+        if not rel or "\0" in rel or Path(rel).is_absolute() or ".." in parts or not isinstance(digest, str):
+            raise DatasetError(f"{marker}: field 'files': entry {rel!r}: {digest!r} is not a file path inside the "
+                               f"dataset folder and its digest: rebuild sample {marker.stem}")
+    return files
 
 
 # ------------------------------------------------------------------------------------ captures
@@ -184,7 +216,7 @@ def merge_capture_shards(root: Path, records: dict[Path, dict[str, Any]]) -> Mer
     from ._fingerprint import frame_fingerprint
 
     count, first = check_same_split(records, root, _CAPTURE_FIELDS, DatasetError, "synth")
-    _check_split(records, count)
+    _check_split(records, count, "capture")
     header = root / "capture.json"
     if not header.is_file():
         raise DatasetError(f"{header}: missing (every shard writes it): run the shards again")

@@ -10,6 +10,7 @@ folder as one run would have.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -23,6 +24,9 @@ SHARDS_DIR = ".shards"
 
 SHARD_FORMAT = "jaxfish-shard"
 """``format`` of a shard record."""
+
+MAX_SHARDS = 1_000_000
+"""The most shards (N) a record may name: a record of a larger split is refused as corrupt."""
 
 SHARD_RULE = "the requested frames, sorted ascending without repeats, are numbered k = 0, 1, ...; frame k goes to shard k mod N"
 """The assignment of frames to shards, in words (also in every shard record)."""
@@ -132,8 +136,9 @@ def slurm_shard(environ: Mapping[str, str] | None = None) -> Shard | None:
 
 # -------------------------------------------------------------------------------------- records
 def read_record(path: Path, error: type[Exception] = DatasetError) -> dict[str, Any]:
-    """A shard record's content; a missing, unreadable or malformed record raises ``error`` naming
-    the file (and the field)."""
+    """A shard record's content; a missing, unreadable or malformed record, or one whose field
+    ``shard`` [I, N] is not 0 <= I < N <= `MAX_SHARDS` or not the file's name, raises ``error``
+    naming the file (and the field)."""
     import json
 
     try:
@@ -146,6 +151,8 @@ def read_record(path: Path, error: type[Exception] = DatasetError) -> dict[str, 
     if (not isinstance(shard, list) or len(shard) != 2 or
             not all(isinstance(v, int) and not isinstance(v, bool) for v in shard) or not 0 <= shard[0] < shard[1]):
         raise error(f"{path}: field 'shard': expected [I, N] with 0 <= I < N, got {shard!r}")
+    if shard[1] > MAX_SHARDS:
+        raise error(f"{path}: field 'shard' is {shard!r}: N exceeds {MAX_SHARDS}, the most shards of one split")
     if path.stem != f"{shard[0]}-of-{shard[1]}":
         raise error(f"{path}: field 'shard' is {shard!r}, but the file is named for shard {path.stem}")
     return doc
@@ -188,9 +195,9 @@ def check_same_split(records: dict[Path, dict[str, Any]], folder: Path, fields: 
                     f"one split (delete the others) and run the missing shards")
     (count,) = counts
     have = {doc["shard"][0] for doc in records.values()}
-    missing = [i for i in range(count) if i not in have]
-    if missing:
-        shown = ", ".join(f"{i}/{count}" for i in missing[:5]) + (" ..." if len(missing) > 5 else "")
+    if len(have) < count:  # the first missing indices only: N may be far larger than the records held
+        missing = list(itertools.islice((i for i in range(count) if i not in have), 5))
+        shown = ", ".join(f"{i}/{count}" for i in missing) + (" ..." if count - len(have) > 5 else "")
         raise error(f"{folder}: shard(s) {shown} missing: no {SHARDS_DIR}/{missing[0]}-of-{count}.json (the shard has "
                     f"not finished, or some of its samples failed): run the {what} with --shard {missing[0]}/{count}")
     first_path, first = next(iter(records.items()))
@@ -226,12 +233,20 @@ def source_origin(source) -> dict[str, Any] | None:
 
 
 def reopen_source(origin: Any, where: str):
-    """The source a dataset shard record's ``origin`` (`source_origin`) names; a record without one
-    raises `DatasetError` (``where`` names the record)."""
+    """The source a dataset shard record's ``origin`` (`source_origin`) names; a record without one,
+    or whose source cannot be opened, raises `DatasetError` naming ``where`` (the record) and the
+    field."""
     from ._sources import CaptureSource, EmbeddedSource
 
     if isinstance(origin, dict) and isinstance(origin.get("capture"), str):
-        return CaptureSource(origin["capture"])
+        path = origin["capture"]
+        try:
+            if "\0" in path:
+                raise DatasetError("not a path (it holds a NUL character)")
+            return CaptureSource(path)
+        except (ValueError, OSError) as e:  # JaxfishError is a ValueError
+            raise DatasetError(f"{where}: field 'origin.capture' ({path!r}): cannot open the capture it names ({e}); "
+                               f"give the capture (jaxfish merge DATASET --capture CAPTURE_DIR)") from None
     if isinstance(origin, dict) and isinstance(origin.get("embedded"), dict):
         from ..io._calibration_json import calibration_from_dict
         from ..scene import CaptureConfig
@@ -244,8 +259,10 @@ def reopen_source(origin: Any, where: str):
                    for n, d in spec["calibrations"].items()}
             return EmbeddedSource(rig, frames=spec["frames"], seed=spec["seed"], config=config)
         except (KeyError, TypeError, AttributeError, ValueError) as e:
-            if isinstance(e, JaxfishError):  # names the field itself
+            if isinstance(e, JaxfishError) and str(e).startswith(where):  # names the record and the field itself
                 raise
+            if isinstance(e, JaxfishError):
+                raise DatasetError(f"{where}: field 'origin.embedded': {e}") from None
             raise DatasetError(f"{where}: field 'origin.embedded' is malformed ({type(e).__name__}: {e})") from None
     raise DatasetError(f"{where}: field 'origin' names no capture (the shards were built from a source jaxfish cannot "
                        f"reopen): give the capture (jaxfish merge DATASET --capture CAPTURE_DIR, "
@@ -271,6 +288,10 @@ def _with_leaves(template, leaves: Any, where: str):
     structure = jax.tree_util.tree_structure(template)
     if not isinstance(leaves, list) or len(leaves) != structure.num_leaves:
         raise DatasetError(f"{where}: expected {structure.num_leaves} arrays")
-    arrays = [jnp.asarray(np.asarray(leaf["values"], dtype=np.dtype(leaf["dtype"])).reshape(leaf["shape"]))
-              for leaf in leaves]
+    arrays = []
+    for leaf in leaves:
+        dtype = np.dtype(leaf["dtype"])
+        if dtype.kind not in "fiu" or dtype.itemsize > 8:
+            raise DatasetError(f"{where}: dtype {leaf['dtype']!r} is not a float or integer type")
+        arrays.append(jnp.asarray(np.asarray(leaf["values"], dtype=dtype).reshape(leaf["shape"])))
     return jax.tree_util.tree_unflatten(structure, arrays)
