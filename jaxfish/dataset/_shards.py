@@ -47,6 +47,8 @@ class Shard:
                 raise DatasetError(f"shard: {field} must be an integer, got {v!r}")
         if self.count < 1:
             raise DatasetError(f"shard: the number of shards must be at least 1, got {self.count}")
+        if self.count > MAX_SHARDS:
+            raise DatasetError(f"shard: the number of shards must be at most {MAX_SHARDS}, got {self.count}")
         if not 0 <= self.index < self.count:
             raise DatasetError(f"shard: index {self.index} is not in 0..{self.count - 1} (shard I/N needs 0 <= I < N)")
 
@@ -82,9 +84,13 @@ def parse_shard(text: str, *, where: str = "--shard") -> Shard:
     parts = str(text).strip().split("/")
     if len(parts) != 2 or not all(p.strip().isdigit() and p.strip().isascii() for p in parts):
         raise DatasetError(f"{where}: cannot read {text!r}: give I/N with integers 0 <= I < N, e.g. 0/4")
-    index, count = (int(p) for p in parts)
+    if len(parts[1].strip()) > 12:  # digits beyond what int() reads are no shard count either
+        raise DatasetError(f"{where}: {text!r}: N exceeds {MAX_SHARDS}, the most shards of one split")
+    index, count = (int(p) if len(p.strip()) <= 12 else MAX_SHARDS + 1 for p in parts)
     if count < 1 or index >= count:
         raise DatasetError(f"{where}: {text!r} is not a shard: I/N needs N >= 1 and 0 <= I < N (e.g. 0/{max(count, 1)})")
+    if count > MAX_SHARDS:
+        raise DatasetError(f"{where}: {text!r}: N exceeds {MAX_SHARDS}, the most shards of one split")
     return Shard(index, count)
 
 
@@ -128,6 +134,9 @@ def slurm_shard(environ: Mapping[str, str] | None = None) -> Shard | None:
     if high is not None and low + (count - 1) * step != high:
         raise DatasetError(f"the SLURM job array is not a range MIN-MAX[:STEP] of SLURM_ARRAY_TASK_COUNT tasks "
                            f"({shown}); submit it as --array=0-{count - 1} or pass --shard I/N")
+    if count > MAX_SHARDS:
+        raise DatasetError(f"the SLURM job array has more than {MAX_SHARDS} tasks ({shown}), the most shards of one "
+                           f"split")
     if task < low or (task - low) % step or (task - low) // step >= count:
         raise DatasetError(f"the SLURM array task is not one of MIN, MIN + STEP, ... ({shown}); "
                            f"pass --shard I/N")

@@ -132,3 +132,15 @@ CASES = [
     Case("records-bev-height-complex", BEV, setup=_dataset(HEIGHT, np.zeros((8, 8), np.complex64)),
          says=("00000_BEV.npy", "dtype complex64"), absent=("{tmp}/o",)),
 ]
+
+CASES += [
+    Case("records-build-shard-count-huge", "build {capture} {tmp}/out --shard 0/1000001",
+         says=("--shard", "N exceeds 1000000"), absent=("{tmp}/out",)),
+    Case("records-build-shard-count-thousands-of-digits", "build {capture} {tmp}/out --shard 0/" + "9" * 5000,
+         says=("--shard", "N exceeds 1000000"), absent=("{tmp}/out",)),
+    Case("records-build-shard-index-thousands-of-digits", "build {capture} {tmp}/out --shard " + "9" * 5000 + "/2",
+         says=("--shard", "0 <= I < N"), absent=("{tmp}/out",)),
+    Case("records-build-slurm-array-huge", "build {capture} {tmp}/out",
+         env=(("SLURM_ARRAY_TASK_ID", "0"), ("SLURM_ARRAY_TASK_COUNT", "2000000")),
+         says=("SLURM", "more than 1000000 tasks"), absent=("{tmp}/out",)),
+]
