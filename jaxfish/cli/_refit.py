@@ -167,8 +167,8 @@ def refit(
                                             "parameter, the extrinsic, the name and the file flavor."),
     model: str | None = typer.Option(None, "--model", "-m", help="Lens model to fit (default: the --calibration's; "
                                      "a different one is converted first). Required without --calibration."),
-    width: int | None = typer.Option(None, help="Image width (without --calibration; required then)."),
-    height: int | None = typer.Option(None, help="Image height (without --calibration; required then)."),
+    width: int | None = typer.Option(None, help="Image width, 1 to 65536 pixels (without --calibration; required then)."),
+    height: int | None = typer.Option(None, help="Image height, 1 to 65536 pixels (without --calibration; required then)."),
     focal: float | None = typer.Option(None, help="Initial focal length, pixels per radian (without --calibration; "
                                        "default: width / pi, an equidistant lens spanning 180 degrees)."),
     name: str = typer.Option("camera", help="Camera name written without --calibration (with it: its name)."),
@@ -231,8 +231,11 @@ def refit(
     else:
         if model is None or width is None or height is None:
             raise fail("without --calibration, give --model, --width and --height")
-        if width <= 0 or height <= 0:
-            raise fail(f"--width/--height must be positive numbers of pixels, got {width}x{height}")
+        from ..cameras import MAX_IMAGE_SIDE
+
+        for option, size in (("--width", width), ("--height", height)):
+            if not 0 < size <= MAX_IMAGE_SIDE:  # the initial camera's image size
+                raise fail(f"{option} must be positive and at most {MAX_IMAGE_SIDE} pixels, got {size}")
         if focal is not None and not (math.isfinite(focal) and focal > 0):
             raise fail(f"--focal must be a positive number of pixels per radian, got {focal}")
         camera = _initial_camera(model, width, height, focal)

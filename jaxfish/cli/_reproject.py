@@ -5,6 +5,11 @@ input stays float, integer values are stored as float32 numbers) or ``.npy`` (th
 computed). Pixels outside the lens domain (or not seen by the source) are 0. Depth is written as
 float32 Euclidean range in metres along each output ray (sky/far stays 1000), so ``.png`` is refused
 for depth. Every error is one message naming the file, a non-zero exit, and no output file.
+
+Both commands share one sample budget, `MAX_OUTPUT_SAMPLES`: the output's width x height x
+``--supersample``² must not exceed 16384 x 16384; a larger output (from ``--width``/``--height``,
+the fisheye calibration of ``cube2fisheye`` or a ``--target-calibration``) is refused, naming where
+its size came from, before any image is read.
 """
 
 from __future__ import annotations
@@ -14,14 +19,31 @@ from pathlib import Path
 
 import typer
 
+from ..cameras import MAX_IMAGE_SIDE
 from ._app import app, check_outputs, fail, say, warn_undersampled
 
 _KINDS = ("rgb", "label", "depth")
 _OUT_EXTS = (".png", ".exr", ".npy")
 _FACE_EXTS = (".png", ".exr")
 
-MAX_OUTPUT_PIXELS = 16384 * 16384
-"""The largest target image `jaxfish reproject` renders (width x height)."""
+MAX_OUTPUT_SAMPLES = 16384 * 16384
+"""The sample budget of `jaxfish reproject` and `jaxfish cube2fisheye`: the output image's width x
+height x ``--supersample``² (the rays its LUT holds, 16384 x 16384 at ``--supersample 1``) must
+not exceed it. Both commands refuse a larger output before reading any image: its LUT and
+temporaries (tens of bytes per sample) would exhaust memory, and XLA aborts the process on a
+buffer it cannot allocate."""
+
+
+def _check_budget(width: int, height: int, supersample: int, origin: str) -> None:
+    """Refuse an output of ``width x height`` pixels at ``supersample``² rays per pixel beyond
+    `MAX_OUTPUT_SAMPLES`; ``origin`` names where the size came from (options or file and fields)."""
+    samples = width * height * supersample * supersample
+    if samples > MAX_OUTPUT_SAMPLES:
+        raise fail(f"{origin} {width}x{height}: more than {MAX_OUTPUT_SAMPLES} samples at --supersample {supersample} "
+                   f"(width x height x {supersample} x {supersample} = {samples}; at most 16384 x 16384 at "
+                   "--supersample 1); lower --supersample or the output size")
+    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
+        raise fail(f"{origin} {width}x{height}: at most {MAX_IMAGE_SIDE} pixels per side")
 
 
 def _check_options(kind: str, out: Path, supersample: int) -> None:
@@ -146,7 +168,8 @@ def cube2fisheye(
     calibration: Path = typer.Option(..., "--calibration", "-c", help="WoodScape/SynWoodScape calibration JSON of the fisheye."),
     out: Path = typer.Option(..., "--out", "-o", help="Output file: .png, .exr or .npy."),
     kind: str = typer.Option("rgb", "--kind", help="rgb (bilinear), label (nearest / majority) or depth (planar z -> range)."),
-    supersample: int = typer.Option(1, "--supersample", help="N x N rays per fisheye pixel (rgb: mean, label: majority, depth: centre)."),
+    supersample: int = typer.Option(1, "--supersample", help="N x N rays per fisheye pixel (rgb: mean, label: majority, depth: centre), 1..16; "
+                                    "the calibration's width x height x N x N must not exceed 268435456 (16384 x 16384 x 1 x 1)."),
     errata: bool = typer.Option(False, "--errata", help="Apply the SynWoodScape calibration errata when loading."),
     instant: str = typer.Option("curr", "--instant", help="With a capture's camera directory: curr (t) or prev (t-1)."),
 ) -> None:
@@ -187,6 +210,7 @@ def cube2fisheye(
             )
         names = FIVE_FACES + (("back",) if paths["back"] is not None else ())
         calib = load_calibration(calibration, apply_errata=errata)
+        _check_budget(calib.camera.width, calib.camera.height, supersample, f"{calibration}: intrinsic.width/height")
         images, size = [], None
         for name in names:
             img = read_image(paths[name], lossless=kind != "rgb" and paths[name].suffix.lower() == ".png")
@@ -234,15 +258,16 @@ def reproject(
     calibration: Path = typer.Option(..., "--calibration", "-c", help="Calibration JSON of the input fisheye (any lens model)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output file: .png, .exr or .npy."),
     to: str = typer.Option("pinhole", "--to", help="Target model: pinhole, equirectangular, cylindrical or fisheye."),
-    width: int | None = typer.Option(None, "--width", help="Target width (default: the input's)."),
-    height: int | None = typer.Option(None, "--height", help="Target height (default: the input's)."),
+    width: int | None = typer.Option(None, "--width", help="Target width, at most 65536 (default: the input's)."),
+    height: int | None = typer.Option(None, "--height", help="Target height, at most 65536 (default: the input's)."),
     fov: float | None = typer.Option(None, "--fov", help="Horizontal field of view in degrees (pinhole 90, panoramas 180)."),
     yaw: float = typer.Option(0.0, "--yaw", help="Turn the target view right by this many degrees."),
     pitch: float = typer.Option(0.0, "--pitch", help="Turn the target view up by this many degrees."),
     roll: float = typer.Option(0.0, "--roll", help="Roll the target view clockwise by this many degrees."),
     target_calibration: Path | None = typer.Option(None, "--target-calibration", help="Calibration JSON of the target, any lens model (--to fisheye)."),
     kind: str = typer.Option("rgb", "--kind", help="rgb (bilinear), label (nearest) or depth (range in metres, kept as range)."),
-    supersample: int = typer.Option(1, "--supersample", help="N x N rays per output pixel."),
+    supersample: int = typer.Option(1, "--supersample", help="N x N rays per output pixel, 1..16; the output's "
+                                    "width x height x N x N must not exceed 268435456 (16384 x 16384 x 1 x 1)."),
 ) -> None:
     """Reproject a fisheye image to another camera model (e.g. rectify it to a pinhole view)."""
     check_outputs(out=out)
@@ -257,6 +282,11 @@ def reproject(
     for name, size in (("--width", width), ("--height", height)):
         if size is not None and size <= 0:
             raise fail(f"{name} must be a positive number of pixels, got {size}")
+    if width is not None and height is not None:
+        _check_budget(width, height, supersample, "--width/--height")
+    for name, size in (("--width", width), ("--height", height)):
+        if size is not None and size > MAX_IMAGE_SIDE:
+            raise fail(f"{name} {size}: at most {MAX_IMAGE_SIDE} pixels per side")
 
     def body():
         import jax.numpy as jnp
@@ -267,18 +297,27 @@ def reproject(
 
         calib = load_camera_calibration(calibration)  # any lens model (WoodScape files included)
         cam = calib.camera.astype(jnp.float32)
+        w = width or cam.width
+        h = height or cam.height
+        origin = "--width/--height" if width or height else f"{calibration}: intrinsic.width/height"
+        target = None
+        if to == "fisheye":
+            target = load_camera_calibration(target_calibration).camera.astype(jnp.float32)
+            if width or height:
+                if not isinstance(target, WoodScapeFisheye):
+                    raise ImageError(f"{target_calibration}: --width/--height apply to a radial_poly target only "
+                                     "(its principal point is an offset from the image centre); omit them to use "
+                                     "the target calibration's own size")
+            else:
+                w, h = target.width, target.height
+                origin = f"{target_calibration}: intrinsic.width/height"
+        _check_budget(w, h, supersample, origin)
         img = read_image(image, lossless=kind != "rgb" and image.suffix.lower() == ".png")
         if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
             raise ImageError(
                 f"{image}: image is {img.shape[1]}x{img.shape[0]} but {calibration} describes {cam.width}x{cam.height} "
                 "(resize the calibration with Calibration.resize)"
             )
-        w = width or cam.width
-        h = height or cam.height
-        if w <= 0 or h <= 0:
-            raise ImageError(f"--width/--height must be positive, got {w}x{h}")
-        if w * h > MAX_OUTPUT_PIXELS:  # XLA aborts the process on buffers it cannot allocate
-            raise ImageError(f"--width/--height {w}x{h}: more than {MAX_OUTPUT_PIXELS} pixels (16384 x 16384)")
         if to == "pinhole":
             f_deg = 90.0 if fov is None else fov
             if not 0 < f_deg < 180:
@@ -294,17 +333,9 @@ def reproject(
                 target = Equirectangular(width=w, height=h, lon_range=lon, lat_range=(-half_lat, half_lat), dtype=jnp.float32)
             else:
                 target = Cylindrical(width=w, height=h, lon_range=lon, dtype=jnp.float32)
-        else:
-            target = load_camera_calibration(target_calibration).camera.astype(jnp.float32)
-            if width or height:
-                if not isinstance(target, WoodScapeFisheye):
-                    raise ImageError(f"{target_calibration}: --width/--height apply to a radial_poly target only "
-                                     "(its principal point is an offset from the image centre); omit them to use "
-                                     "the target calibration's own size")
-                target = target.__class__(target.k, width=w, height=h, cx_offset=target.cx_offset,
-                                          cy_offset=target.cy_offset, aspect_ratio=target.aspect_ratio)
-            else:
-                w, h = target.width, target.height
+        elif width or height:
+            target = target.__class__(target.k, width=w, height=h, cx_offset=target.cx_offset,
+                                      cy_offset=target.cy_offset, aspect_ratio=target.aspect_ratio)
         x = _prepare([img], kind, [str(image)])
         fns = _functions()
         r = jnp.asarray(_rotation(yaw, pitch, roll), jnp.float32)

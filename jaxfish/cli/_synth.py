@@ -20,11 +20,11 @@ def synth(
     workers: int | None = typer.Option(None, "--workers", "-w", help="With --build: a local dask cluster of N workers."),
     frames: int = typer.Option(1, "--frames", "-n", help="Number of frames (each with its t-1 instant)."),
     seed: int = typer.Option(0, "--seed", "-s", help="Scene seed (the same seed gives the same capture)."),
-    face_size: int = typer.Option(1152, "--face-size", help="Cube face size in pixels (90-degree faces); a size "
+    face_size: int = typer.Option(1152, "--face-size", help="Cube face size in pixels (90-degree faces, 8 to 65536); a size "
                                   "that undersamples the rig's fisheyes is warned about."),
     rig_dir: Path | None = typer.Option(None, "--rig", help="Calibration directory (default: jaxfish's own rig)."),
-    bev_size: int = typer.Option(1024, "--bev-size", help="BEV top-view image size in pixels."),
-    front_width: int = typer.Option(1632, "--front-width", help="Front perspective camera width (4:3)."),
+    bev_size: int = typer.Option(1024, "--bev-size", help="BEV top-view image size in pixels (8 to 65536)."),
+    front_width: int = typer.Option(1632, "--front-width", help="Front perspective camera width in pixels (4:3, 8 to 65536)."),
     dvs_substeps: int = typer.Option(4, "--dvs-substeps", help="Sub-frames between t-1 and t for DVS events."),
     shard: str | None = typer.Option(None, "--shard", metavar="I/N", help="Render (or with --build, build) only "
                                      "shard I of N of the frames (frame k when k mod N = I), then `jaxfish merge` the "
@@ -40,7 +40,8 @@ def synth(
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from .. import default_rig, load_rig
-    from ..dataset import rig_names, steps_per_frame, synthesize_capture
+    from ..cameras import MAX_IMAGE_SIDE
+    from ..dataset import MAX_FRAMES, rig_names, steps_per_frame, synthesize_capture
     from ..scene import CaptureConfig
     from ._build import resolve_shard
 
@@ -48,14 +49,15 @@ def synth(
         raise fail("give exactly one of --out CAPTURE_DIR (write a capture) and --build DATASET_DIR (build in memory)")
     if workers is not None and (build is None or workers < 1):
         raise fail("--workers needs --build and must be at least 1")
-    if frames < 1:
-        raise fail(f"--frames must be at least 1, got {frames}")
+    if not 1 <= frames <= MAX_FRAMES:
+        raise fail(f"--frames must be from 1 to {MAX_FRAMES}, got {frames}")
     if seed < 0:
         raise fail(f"--seed must be a non-negative integer, got {seed}")
-    if face_size < 8:
-        raise fail(f"--face-size must be at least 8 pixels, got {face_size}")
-    if bev_size < 8 or front_width < 8 or dvs_substeps < 1:
-        raise fail("--bev-size and --front-width must be at least 8, --dvs-substeps at least 1")
+    for option, size in (("--face-size", face_size), ("--bev-size", bev_size), ("--front-width", front_width)):
+        if not 8 <= size <= MAX_IMAGE_SIDE:  # checked before anything is written: a camera refuses a larger side
+            raise fail(f"{option} must be from 8 to {MAX_IMAGE_SIDE} pixels, got {size}")
+    if dvs_substeps < 1:
+        raise fail(f"--dvs-substeps must be at least 1, got {dvs_substeps}")
     chosen_shard = resolve_shard(shard)
     if rig_dir is not None:
         if not rig_dir.is_dir() or not rig_names(rig_dir):

@@ -78,6 +78,7 @@ from ._shards import parse_shard as parse_shard
 from ._shards import slurm_shard as slurm_shard
 from ._sink import LayoutSink as LayoutSink
 from ._sink import synwoodscape_palette_dict as synwoodscape_palette_dict
+from ._sources import MAX_FRAMES as MAX_FRAMES
 from ._sources import CaptureSource as CaptureSource
 from ._sources import EmbeddedSource as EmbeddedSource
 from ._sources import FrameSource as FrameSource

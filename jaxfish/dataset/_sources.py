@@ -27,6 +27,10 @@ from ..pipeline import (
 )
 from ._layout import FISHEYE_CAMERAS
 
+MAX_FRAMES = 10_000_000
+"""The most frames an embedded source (`EmbeddedSource`, ``jaxfish synth``) renders: far beyond
+any dataset, and a bound on the frame lists a run holds."""
+
 
 class FrameSource(Protocol):  # the builder's view of a source
     """What the builder needs of a source of frames.
@@ -317,8 +321,8 @@ class EmbeddedSource:
 
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
             raise JaxfishError(f"EmbeddedSource: seed must be an integer from 0 to 2**63 - 1, got {seed!r}")
-        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or int(frames) < 1:
-            raise JaxfishError(f"EmbeddedSource: frames must be a positive integer, got {frames!r}")
+        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or not 1 <= int(frames) <= MAX_FRAMES:
+            raise JaxfishError(f"EmbeddedSource: frames must be an integer from 1 to {MAX_FRAMES}, got {frames!r}")
         self.render_rig = dict(rig)
         self.config = config or CaptureConfig()
         self.seed = int(seed)

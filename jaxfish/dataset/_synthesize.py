@@ -12,6 +12,7 @@ import numpy as np
 
 from .._errors import JaxfishError
 from ..calibration import Calibration
+from ..cameras import MAX_IMAGE_SIDE
 from ..io import CaptureError, check_capture_folder, write_capture_header, write_frame
 from ..io._folder import folder_lock, remove_temporaries, shard_lock
 from ..scene import (
@@ -28,6 +29,7 @@ from ..scene import (
     simulate_radar,
     simulate_view,
 )
+from ._sources import MAX_FRAMES
 
 
 def synthesize_capture(
@@ -47,6 +49,8 @@ def synthesize_capture(
     files a killed run left in it are removed first (only jaxfish's own). An existing capture's
     files are overwritten with the new ones; files jaxfish does not write there are kept.
     ``progress`` is called with a short description after every step (a camera, a view, ...).
+    A ``config`` image side (face, BEV, front camera) beyond `jaxfish.cameras.MAX_IMAGE_SIDE`
+    raises `CaptureError` before ``root`` is created or written.
 
     ``shard=(I, N)`` (a `jaxfish.dataset.Shard`) renders only shard I of N of the frames (frame k
     when k mod N = I; every frame is a function of ``seed`` and its number alone, so any split
@@ -58,8 +62,8 @@ def synthesize_capture(
     """
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
         raise CaptureError(f"synthesize_capture: seed must be an integer from 0 to 2**63 - 1, got {seed!r}")
-    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or int(frames) < 1:
-        raise CaptureError(f"synthesize_capture: frames must be a positive integer, got {frames!r}")
+    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or not 1 <= int(frames) <= MAX_FRAMES:
+        raise CaptureError(f"synthesize_capture: frames must be an integer from 1 to {MAX_FRAMES}, got {frames!r}")
     config = config or CaptureConfig()
     from ._shards import SHARDS_DIR, as_shard
 
@@ -67,6 +71,10 @@ def synthesize_capture(
         shard = as_shard(shard)
     except JaxfishError as e:
         raise CaptureError(f"synthesize_capture: {e}") from None
+    for name in ("face_size", "bev_size", "front_width", "front_height"):  # refused before anything is written
+        if int(getattr(config, name)) > MAX_IMAGE_SIDE:
+            raise CaptureError(f"synthesize_capture: CaptureConfig.{name} {getattr(config, name)} exceeds "
+                               f"{MAX_IMAGE_SIDE} pixels per side")
     mounts = sensor_mounts(rig, config)
     root = check_capture_folder(root)
     root.mkdir(parents=True, exist_ok=True)
