@@ -199,8 +199,14 @@ def _pickle(path: Path) -> Any:
 
 
 def _image(path: Path, channels: int | None = None, *, lossless: bool = False) -> np.ndarray:
+    """The pixels of ``path`` with ``channels`` channels (None: as stored; 1: ``(H, W)``). A
+    lossless one-channel read (labels, masks) takes a palette PNG's indices and a grey image stored
+    in colour channels (all equal); other colours raise `DatasetReadError` naming the file."""
     a = read_image(path, lossless=lossless)
     if channels == 1:
+        if lossless and a.shape[-1] > 1 and not all(np.array_equal(a[..., 0], a[..., c]) for c in range(1, min(3, a.shape[-1]))):
+            raise DatasetReadError(f"{path}: expected labels (one grey channel or palette indices), got "
+                                   f"{a.shape[-1]} channels of different colours")
         return a[..., 0]
     if channels is not None:
         if a.shape[-1] < channels:

@@ -39,7 +39,13 @@ import numpy as np
 from .._errors import CalibrationError, JaxfishError
 from ..calibration import Calibration
 from ..cameras import WoodScapeFisheye
-from ..refit import Correspondences, intrinsics_from_dict, intrinsics_to_dict, intrinsics_vector
+from ..refit import (
+    MAX_CORRESPONDENCE_VALUE,
+    Correspondences,
+    intrinsics_from_dict,
+    intrinsics_to_dict,
+    intrinsics_vector,
+)
 from ..transforms import CARLA_TO_ISO, Pose
 from ._calibration_json import (
     SYNWOODSCAPE_TRANSLATION_KEY,
@@ -61,9 +67,6 @@ def _read_json(path: Path, error: type[JaxfishError]) -> Any:
     return read_json(path, error)
 
 
-MAX_CORRESPONDENCE_VALUE = 1e7
-"""Largest magnitude of a correspondence's coordinate (metres, pixels) or weight: beyond any real
-calibration target, and small enough that squared residuals stay finite."""
 
 
 def correspondence_array(value: Any, cols: int | None, source: str, field: str) -> np.ndarray:

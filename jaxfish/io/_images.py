@@ -60,7 +60,9 @@ def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None 
 
     ``expect_shape`` (``(H, W)`` or ``(H, W, C)``) raises `ImageError` on a size mismatch.
     ``lossless=True`` (labels, encoded depth): the file must be a PNG (its content, whatever its
-    name: a JPEG renamed ``.png`` is refused), else `ImageError` naming it. A path that is not a
+    name: a JPEG renamed ``.png`` is refused), else `ImageError` naming it, and its stored samples
+    are returned: a palette PNG gives its palette indices ``(H, W, 1)`` uint8 (without
+    ``lossless``, its colours, as OpenImageIO reads them). A path that is not a
     regular file (a directory, a FIFO, a device) raises `ImageError` before anything is read.
     """
     path = Path(path)
@@ -84,13 +86,14 @@ def read_image(path: str | os.PathLike, *, expect_shape: tuple[int, ...] | None 
 def decode_image_bytes(path: Path, data: bytes, *, lossless: bool = False) -> np.ndarray:
     """The pixels of the image file ``path`` whose bytes (or at least its first eight) are ``data``:
     PNG bytes are decoded from ``data``, any other format is read from ``path`` by OpenImageIO
-    (`read_image`'s rules; ``lossless=True`` refuses anything but a PNG)."""
+    (`read_image`'s rules; ``lossless=True`` refuses anything but a PNG and reads a palette PNG's
+    indices)."""
     head = bytes(data[:len(PNG_SIGNATURE)])
     if lossless and head != PNG_SIGNATURE:
         found = _sniff(head)
         raise ImageError(f"{path}: expected a lossless PNG file, found {found} (the PNG signature is missing)")
     if head == PNG_SIGNATURE:
-        return decode_png(data, str(path), fallback=lambda: _read_oiio(path))
+        return decode_png(data, str(path), fallback=lambda: _read_oiio(path), palette_indices=lossless)
     return _read_oiio(path)
 
 

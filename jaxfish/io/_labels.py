@@ -41,10 +41,20 @@ def write_label_png(path: str | os.PathLike, labels: np.ndarray, *, png_level: i
     return write_image(path, a.astype(np.uint8 if high < 256 else np.uint16), png_level=png_level)
 
 
+_CHANNEL_KINDS = {2: "grey + alpha", 3: "RGB colour", 4: "RGBA colour"}
+
+
 def read_label_png(path: str | os.PathLike) -> np.ndarray:
-    """Read an index PNG as ``(H, W)`` int32; a file that is not a PNG by content (a JPEG renamed
-    ``.png``: wrong labels) raises `ImageError` naming it."""
-    return read_image(path, lossless=True)[..., 0].astype(np.int32)
+    """Read an index PNG as ``(H, W)`` int32: the grey samples of a one-channel PNG, or the palette
+    indices of a palette PNG (never its colours). A file that is not a PNG by content (a JPEG
+    renamed ``.png``: wrong labels) or that has more than one channel (a colour rendering such as
+    ``rgbLabels``) raises `ImageError` naming it."""
+    a = read_image(path, lossless=True)
+    if a.shape[-1] != 1:
+        raise ImageError(f"{path}: expected an index PNG (one grey channel or palette indices), got "
+                         f"{a.shape[-1]} channels ({_CHANNEL_KINDS.get(a.shape[-1], 'colour')}): labels are "
+                         "not read from colours (gtLabels holds the index PNGs, rgbLabels their colour renderings)")
+    return a[..., 0].astype(np.int32)
 
 
 def write_color_png(path: str | os.PathLike, rgb: np.ndarray, palette: Mapping[str, Any] | None = None, *,

@@ -25,6 +25,12 @@ same deflate implementation.
 - anything else (16 bits with other filters, palettes, 1/2/4-bit grey, ``tRNS``, or no pyspng):
   OpenImageIO.
 
+With ``palette_indices=True`` a palette PNG (colour type 3, 1/2/4/8 bits) gives its palette indices
+``(H, W, 1)`` uint8 instead of its colours: its IDAT data, which holds the indices as samples of
+its bit depth, is decoded as a grey PNG of that depth (the fast path or pyspng at 8 bits, pyspng
+at 1/2/4 bits, whose grey samples are scaled by bit replication and are divided back); ``PLTE``
+and ``tRNS`` do not apply to indices.
+
 Malformed files raise `ImageError` naming the file and the chunk or field.
 """
 
@@ -302,12 +308,42 @@ def _unfilter_up(filtered: np.ndarray) -> np.ndarray:
     return out
 
 
-def decode_png(data: bytes, where: str = "PNG", *, fallback=None) -> np.ndarray:
+def _palette_as_grey(png: ParsedPng) -> bytes:
+    """A grey PNG of the bit depth of the palette PNG ``png`` whose samples are its palette indices:
+    the same IDAT data (the rows, filters and interlacing are those of a grey image of that depth),
+    with only the IHDR, IDAT and IEND chunks."""
+    hd = png.header
+    ihdr = struct.pack(">IIBBBBB", hd.width, hd.height, hd.bit_depth, 0, 0, 0, hd.interlace)
+    view = memoryview(png.idat)
+    idat = [_chunk(b"IDAT", view[i:i + IDAT_CHUNK_BYTES]) for i in range(0, max(len(view), 1), IDAT_CHUNK_BYTES)]
+    return b"".join([PNG_SIGNATURE, _chunk(b"IHDR", ihdr), *idat, _chunk(b"IEND", b"")])
+
+
+def _palette_indices(png: ParsedPng, where: str) -> np.ndarray:
+    """The ``(H, W, 1)`` uint8 palette indices of the palette PNG ``png`` (module docstring)."""
+    hd = png.header
+    grey = _palette_as_grey(png)
+    if hd.bit_depth == 8:
+        return decode_png(grey, where)
+    if _pyspng is None:
+        raise ImageError(f"{where}: reading the indices of a {hd.bit_depth}-bit palette PNG needs pyspng")
+    try:
+        samples = _pyspng.load(grey)
+    except Exception as e:  # libspng's message, e.g. "IDAT stream error"
+        raise ImageError(f"{where}: corrupt PNG ({e})") from None
+    scale = 255 // ((1 << hd.bit_depth) - 1)  # libspng replicates the bits of 1/2/4-bit grey samples
+    return (samples.reshape(hd.height, hd.width, 1) // scale).astype(np.uint8)
+
+
+def decode_png(data: bytes, where: str = "PNG", *, fallback=None, palette_indices: bool = False) -> np.ndarray:
     """Pixels ``(H, W, C)`` (uint8 or uint16, ``C`` = the file's samples per pixel) of PNG bytes.
     ``fallback``: a function of nothing returning the pixels by OpenImageIO, for the files neither
-    the fast path nor pyspng decodes (module docstring); without one those raise `ImageError`."""
+    the fast path nor pyspng decodes (module docstring); without one those raise `ImageError`.
+    ``palette_indices=True``: a palette PNG gives its indices ``(H, W, 1)`` uint8, not its colours."""
     png = parse_png(data, where)
     hd = png.header
+    if palette_indices and hd.color_type == 3:
+        return _palette_indices(png, where)
     channels = _CHANNELS[hd.color_type]
     simple = hd.color_type != 3 and hd.bit_depth in (8, 16) and not hd.transparency
     if not simple:

@@ -11,6 +11,7 @@ from ._convert import initial_camera as initial_camera
 from ._convert import sample_rays as sample_rays
 from ._convert import shape_scan_starts as shape_scan_starts
 from ._fit import LOSSES as LOSSES
+from ._fit import MAX_CORRESPONDENCE_VALUE as MAX_CORRESPONDENCE_VALUE
 from ._fit import Correspondences as Correspondences
 from ._fit import RefitResult as RefitResult
 from ._fit import estimate_pose as estimate_pose

@@ -27,6 +27,12 @@ BEHIND_AXIS_MARGIN_RAD = 1e-3
 optical axis has no azimuth, and is invalid in every model."""
 SOURCE_THETA_MARGIN_RAD = 1e-3
 """Margin below a source model's own theta_max (for models whose theta_max is a supremum)."""
+MIN_AZIMUTHS = 3
+"""Fewest azimuths (``n_phi``) `convert_camera` samples over the lens (``fov="lens"`` or
+``theta_max``): the rays of one or two azimuths lie in one plane through the optical axis, which
+leaves the focal length across that plane (or the aspect ratio) undetermined."""
+MIN_RAYS_PER_PARAMETER = 3
+"""Fewest rays the source projects that `convert_camera` fits per free parameter of the target."""
 
 
 class ConversionResult(eqx.Module):
@@ -318,20 +324,36 @@ def convert_camera(
     (`MODEL_CLASSES`, aliases such as ``"kb"``), a camera class, or a camera instance (then the
     only start). Parameters named in ``fixed`` keep the initial guess's values in every start.
     The same image size is kept.
+
+    Samples too few to determine the target's free parameters are refused (ValueError):
+    ``n_theta`` and ``n_phi`` must be integers >= 1; over the lens, at least one incidence angle
+    per free parameter and `MIN_AZIMUTHS` azimuths; in every domain, at least
+    `MIN_RAYS_PER_PARAMETER` rays the source projects per free parameter.
     """
+    n_theta, n_phi = _sample_count("n_theta", n_theta), _sample_count("n_phi", n_phi)
+    names = parameter_names(target)
+    n_free = sum(free_parameter_mask(names, fixed))
+    model_name = canonical_model_name(target)
+    if fov != "image" or theta_max is not None:
+        if n_theta < n_free:
+            raise ValueError(f"convert_camera: n_theta={n_theta} incidence angles cannot determine the {n_free} free "
+                             f"parameters of {model_name}: use n_theta >= {n_free}")
+        if n_phi < MIN_AZIMUTHS:
+            raise ValueError(f"convert_camera: n_phi={n_phi} azimuths lie in one plane through the optical axis and "
+                             f"cannot determine {model_name}: use n_phi >= {MIN_AZIMUTHS}")
     dtype = _source_dtype(source)
     if theta_max is not None:
         top = min(float(theta_max), math.pi - BEHIND_AXIS_MARGIN_RAD)
         if not top > 0:
             raise ValueError(f"convert_camera: nothing to sample (theta_max = {top})")
-        rays = sample_rays(top, int(n_theta), int(n_phi), dtype)
+        rays = sample_rays(top, n_theta, n_phi, dtype)
     elif fov == "lens":
         top = min(float(camera_theta_max(source, dtype)) - SOURCE_THETA_MARGIN_RAD, math.pi - BEHIND_AXIS_MARGIN_RAD)
         if not top > 0:
             raise ValueError(f"convert_camera: nothing to sample (theta_max = {top})")
-        rays = sample_rays(top, int(n_theta), int(n_phi), dtype)
+        rays = sample_rays(top, n_theta, n_phi, dtype)
     elif fov == "image":
-        rays = _image_rays(source, int(n_theta) * int(n_phi), dtype)
+        rays = _image_rays(source, n_theta * n_phi, dtype)
         if rays.shape[0] == 0:
             raise ValueError("convert_camera: no pixel of the image has a ray")
         top = min(float(np.max(np.arccos(np.clip(np.asarray(rays[:, 2]), -1.0, 1.0)))),
@@ -342,6 +364,12 @@ def convert_camera(
     uv_all, ok_all = jit_project(source, jnp.concatenate([_init_rays(top, dtype), rays]))
     n_init = _PROFILE + 3
     uv_src, ok = uv_all[n_init:], ok_all[n_init:]
+    projected = int(jnp.sum(ok))
+    if projected < MIN_RAYS_PER_PARAMETER * n_free:
+        raise ValueError(f"convert_camera: the source projects {projected} of the {rays.shape[0]} sampled rays, too few "
+                         f"to determine the {n_free} free parameters of {model_name} (at least "
+                         f"{MIN_RAYS_PER_PARAMETER * n_free}: sample more rays with n_theta, n_phi)")
+    uv_src = jnp.where(ok[:, None], uv_src, jnp.zeros((), dtype))  # the rays it cannot project have weight 0
     if isinstance(target, AbstractCamera):
         starts = [target]
     else:
@@ -373,6 +401,15 @@ def convert_camera(
         camera, *stats[:4], theta_max=jnp.asarray(top, dtype), max_radius_px=stats[4], num_samples=jnp.sum(ok),
         num_target_invalid=stats[-1], num_steps=steps, converged=converged, num_starts=len(starts),
     )
+
+
+def _sample_count(name: str, value) -> int:
+    """``value`` of the sample count ``name`` as an int: an integer >= 1, else TypeError/ValueError."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"convert_camera: {name} must be an integer, got {value!r}")
+    if value < 1:
+        raise ValueError(f"convert_camera: {name} must be >= 1, got {value}")
+    return int(value)
 
 
 @eqx.filter_jit

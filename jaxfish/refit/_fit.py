@@ -71,6 +71,43 @@ def rotation_from_vector(omega: Float[Array, "*batch 3"]) -> Float[Array, "*batc
     return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
 
 
+MAX_CORRESPONDENCE_VALUE = 1e7
+"""Largest magnitude of a correspondence's coordinate (metres, pixels) or weight: beyond any real
+calibration target, and small enough that squared residuals stay finite."""
+
+
+def _checked_values(name: str, a: Array, weight: Array | None = None) -> Array:
+    """``a`` (a `Correspondences` field: the weights themselves when ``weight`` is None) checked to
+    be finite and, in its rows of positive ``weight``, at most `MAX_CORRESPONDENCE_VALUE` in
+    magnitude; weights also non-negative. ValueError when concrete, `eqx.error_if` (a runtime
+    error) when traced."""
+    is_weight = weight is None
+    if isinstance(a, jax.core.Tracer) or isinstance(weight, jax.core.Tracer):
+        w = a if is_weight else weight
+        big = jnp.abs(a) > MAX_CORRESPONDENCE_VALUE
+        if not is_weight:
+            big = jnp.any(big, axis=-1) & (w > 0)
+        bad = jnp.any(~jnp.isfinite(a)) | jnp.any(big) | (jnp.any(a < 0) if is_weight else False)
+        return eqx.error_if(a, bad, f"Correspondences: {name}: values must be finite, at most "
+                                    f"{MAX_CORRESPONDENCE_VALUE:g} in magnitude"
+                                    + (" and non-negative" if is_weight else " where the weight is positive"))
+    v = np.asarray(a).reshape(a.shape[0], int(np.prod(a.shape[1:])))  # rows: (N, 3), (N, 2) or (N, 1)
+    if not np.all(np.isfinite(v)):
+        i = int(np.argmax(~np.isfinite(v).all(axis=1)))
+        raise ValueError(f"Correspondences: {name}: values must be finite (row {i}: {v[i].tolist()})")
+    rows = np.abs(v).max(axis=1, initial=0.0)
+    if not is_weight:
+        rows = np.where(np.asarray(weight) > 0, rows, 0.0)
+    if rows.size and rows.max() > MAX_CORRESPONDENCE_VALUE:
+        i = int(np.argmax(rows))
+        raise ValueError(f"Correspondences: {name}: values must be at most {MAX_CORRESPONDENCE_VALUE:g} in magnitude, "
+                         f"got {rows[i]:g} in row {i}" + ("" if is_weight else " (weight > 0)"))
+    if is_weight and v.size and v.min() < 0:
+        i = int(np.argmin(v[:, 0]))
+        raise ValueError(f"Correspondences: {name}: expected {v.shape[0]} non-negative numbers, got {v[i, 0]:g} at index {i}")
+    return a
+
+
 class Correspondences(eqx.Module):
     """2D-3D correspondences: ``pixels[i]`` observes ``points[i]`` in view ``view[i]``.
 
@@ -79,6 +116,11 @@ class Correspondences(eqx.Module):
     pixel-centre convention; `view` ``(N,)`` integer view index in ``[0, n_views)``; `weight`
     ``(N,)`` non-negative per-point weights (default 1; 0 drops a point without changing shapes,
     so one compiled solve serves every subset).
+
+    Points, pixels and weights must be finite (even at weight 0) and, in the rows of positive
+    weight, at most `MAX_CORRESPONDENCE_VALUE` in magnitude; weights non-negative (the rules of
+    the correspondence files, whose rows all count): ValueError otherwise (a runtime error from
+    `eqx.error_if` for traced values).
     """
 
     points: Float[Array, "N 3"]
@@ -108,15 +150,15 @@ class Correspondences(eqx.Module):
         n_views = n if n_views is None else int(n_views)
         if n_views < n:
             raise ValueError(f"Correspondences: n_views={n_views} but view indices go up to {n - 1}")
-        self.points = points
-        self.pixels = pixels
         self.view = jnp.asarray(view, dtype=jnp.int32)
         if weight is None:
             weight = np.ones(points.shape[0])
         weight = jnp.asarray(weight, dtype=dtype)
         if weight.shape != (points.shape[0],):
             raise ValueError(f"Correspondences: weight must have shape ({points.shape[0]},), got {weight.shape}")
-        self.weight = weight
+        self.weight = _checked_values("weight", weight)
+        self.points = _checked_values("points", points, weight)
+        self.pixels = _checked_values("pixels", pixels, weight)
         self.n_views = n_views
 
     @property

@@ -20,6 +20,53 @@ from .._numerics import resolve_dtype
 from ..cameras import AbstractCamera, Pinhole
 from ._cube import CubeRig
 
+ROTATION_TOLERANCE = 1e-4
+"""Largest deviation of a `build_lut` ``target_to_source`` from a rotation it accepts: of every
+entry of ``Rᵀ R`` from the identity's and of ``det R`` from +1 (a rotation rounded to float32 is
+~1e-7 off; a reflection's determinant is -1)."""
+
+
+def _supersample_count(n) -> int:
+    """``n`` as an int: an integer >= 1 (TypeError for a bool, a float or anything else, ValueError
+    below 1)."""
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)):
+        raise TypeError(f"supersample must be an integer, got {n!r}")
+    if n < 1:
+        raise ValueError(f"supersample must be a positive integer, got {n}")
+    return int(n)
+
+
+def _checked_rotation(target_to_source, dtype) -> Array:
+    """``target_to_source`` as a ``(3, 3)`` array of ``dtype``, checked to be a finite rotation
+    within `ROTATION_TOLERANCE`: ValueError when concrete, `eqx.error_if` (a runtime error) when
+    traced (under `jax.jit` or `jax.vmap`)."""
+    traced = isinstance(target_to_source, jax.core.Tracer)
+    m = target_to_source if traced else np.asarray(target_to_source)
+    if m.shape != (3, 3):
+        raise ValueError(f"build_lut: target_to_source must be a 3x3 rotation matrix, got shape {m.shape}")
+    if not traced:
+        if m.dtype.kind not in "iuf":
+            raise TypeError(f"build_lut: target_to_source must be a matrix of real numbers, got {m.dtype}")
+        m = m.astype(np.float64)
+        if not np.all(np.isfinite(m)):
+            raise ValueError(f"build_lut: target_to_source must be finite, got {m.tolist()}")
+        orth = float(np.max(np.abs(m.T @ m - np.eye(3))))
+        det = float(np.linalg.det(m))
+        if orth > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
+            kind = "a reflection (det < 0)" if det < 0 else "not a rotation"
+            raise ValueError(f"build_lut: target_to_source is {kind}: max |R^T R - I| = {orth:.3g}, det = {det:.6g} "
+                             f"(a rotation has both within {ROTATION_TOLERANCE:g} of 0 and 1)")
+        return jnp.asarray(m, dtype)
+    r = jnp.asarray(target_to_source)
+    if not jnp.issubdtype(r.dtype, jnp.floating):
+        r = r.astype(dtype)
+    orth = jnp.max(jnp.abs(r.T @ r - jnp.eye(3, dtype=r.dtype)))
+    det = jnp.linalg.det(r)
+    bad = ~jnp.all(jnp.isfinite(r)) | ~(orth <= ROTATION_TOLERANCE) | ~(jnp.abs(det - 1) <= ROTATION_TOLERANCE)
+    r = eqx.error_if(r, bad, f"build_lut: target_to_source is not a finite rotation (max |R^T R - I| and "
+                             f"|det R - 1| within {ROTATION_TOLERANCE:g})")
+    return r.astype(dtype)
+
 
 def supersample_offsets(n: int) -> np.ndarray:
     """Sub-pixel offsets ``(du, dv)`` of an ``n x n`` supersampling pattern, shape ``(n*n, 2)``.
@@ -28,9 +75,7 @@ def supersample_offsets(n: int) -> np.ndarray:
     the pixel centre: a regular grid covering the pixel's square footprint. ``n = 1`` is the pixel
     centre itself.
     """
-    n = int(n)
-    if n < 1:
-        raise ValueError(f"supersample must be a positive integer, got {n}")
+    n = _supersample_count(n)
     o = (np.arange(n) + 0.5) / n - 0.5
     dv, du = np.meshgrid(o, o, indexing="ij")
     return np.stack([du.ravel(), dv.ravel()], axis=-1)
@@ -188,14 +233,17 @@ def build_lut(
 
     ``dtype`` is the precision of the ray computation and of the stored coordinates (float32 by
     default: 1024-px faces keep ~1e-4 px).
+
+    Refused: a ``target_to_source`` that is not a finite 3x3 rotation within `ROTATION_TOLERANCE`
+    (a reflection, a scaled or non-finite matrix: ValueError; under `jax.jit` or `jax.vmap`, where
+    it is traced, an `eqx.error_if` runtime error), a ``supersample`` that is not an integer >= 1
+    (TypeError, ValueError) and a non-floating ``dtype`` (TypeError).
     """
     dtype = resolve_dtype(dtype)
-    r = None
-    if target_to_source is not None:
-        r = jnp.asarray(target_to_source, dtype)
-        if r.shape != (3, 3):
-            raise ValueError(f"build_lut: target_to_source must be a 3x3 rotation matrix, got shape {r.shape}")
-    n = int(supersample)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"build_lut: dtype must be a floating dtype (the precision of the rays and coordinates), got {dtype}")
+    n = _supersample_count(supersample)
+    r = None if target_to_source is None else _checked_rotation(target_to_source, dtype)
     offsets = jnp.asarray(supersample_offsets(n), dtype)  # (N, 2)
     grid = target.pixel_grid(dtype)  # (H, W, 2)
     uv_t = grid[:, :, None, :] + offsets  # (H, W, N, 2)

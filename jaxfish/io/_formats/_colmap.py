@@ -1,6 +1,8 @@
 """COLMAP text model: ``cameras.txt`` (``CAMERA_ID MODEL WIDTH HEIGHT PARAMS...``) and, for the
 poses, ``images.txt`` (``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`` then a line of 2D points;
-world -> camera). COLMAP's pixel origin is the top-left corner of the top-left pixel: its
+world -> camera): two lines per image, as COLMAP reads them, the line after an image line being its
+points line (``X Y POINT3D_ID`` triples, or empty); any other line there (an image line whose
+points line is missing) is refused with the file and line. COLMAP's pixel origin is the top-left corner of the top-left pixel: its
 principal point is jaxfish's plus 0.5 px. The world is jaxfish's vehicle frame; a camera with no
 image keeps the identity pose. Camera names: the image ``NAME`` without its extension.
 """
@@ -91,22 +93,40 @@ def read(cameras_txt: Path, images_txt: Path | None) -> list[CameraRecord]:
     return list(cams.values())
 
 
+def _points_line(line: str, source: str, where: str, image_where: str) -> None:
+    """Check that ``line`` is a ``POINTS2D`` line (``X Y POINT3D_ID`` triples of numbers, or empty;
+    a comment line, which COLMAP also takes as the points line, holds none)."""
+    parts = line.split()
+    if not parts or parts[0].startswith("#"):
+        return
+    try:
+        values = np.asarray(parts, np.float64)
+    except ValueError:
+        values = None
+    if values is None or len(parts) % 3 or not np.all(np.isfinite(values)):
+        raise fail(source, where, f"expected the POINTS2D line of the image on {image_where} (X Y POINT3D_ID "
+                                  f"triples, or an empty line: images.txt has two lines per image), got {short(line.strip())}")
+
+
 def _read_images(path: Path, cams: dict[int, CameraRecord]) -> None:
     source = str(path)
     seen: set[int] = set()
-    # Lines alternate: image line, then its 2D points (a points line may be empty: _lines drops it).
+    # Two lines per image, as COLMAP reads them: an image line (blank and comment lines before it
+    # are skipped), then the line after it, whatever it holds, is its 2D points line (may be
+    # empty). A file that ends after an image line has that image without points.
     raw = path.read_text(encoding="utf-8").splitlines()
-    data = [(i + 1, ln) for i, ln in enumerate(raw) if not ln.lstrip().startswith("#")]
     k = 0
-    while k < len(data):
-        lineno, line = data[k]
-        if not line.strip():
+    while k < len(raw):
+        lineno, line = k + 1, raw[k]
+        if not line.strip() or line.lstrip().startswith("#"):
             k += 1
             continue
         parts = line.split()
         where = f"line {lineno}"
         if len(parts) < 10:
             raise fail(source, where, f"expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got {line.strip()!r}")
+        if k + 1 < len(raw):
+            _points_line(raw[k + 1], source, f"line {lineno + 1}", where)
         q = [number(parts[1 + j], source, f"{where}.{n}") for j, n in enumerate(("QW", "QX", "QY", "QZ"))]
         t = [number(parts[5 + j], source, f"{where}.{n}") for j, n in enumerate(("TX", "TY", "TZ"))]
         try:
