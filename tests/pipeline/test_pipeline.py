@@ -219,7 +219,7 @@ def test_sources_refuse_what_they_do_not_have(small_capture):
 
     with pytest.raises(CaptureError, match="frame 5"):
         _embedded().read(5)
-    with pytest.raises(JaxfishError, match="frames must be a positive integer"):
+    with pytest.raises(JaxfishError, match="frames must be an integer from 1 to"):
         EmbeddedSource(demo_rig(SCALE), frames=0)
     with pytest.raises(CaptureError, match="frame 9"):
         CaptureSource(small_capture).read(9)
