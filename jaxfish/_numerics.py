@@ -98,12 +98,23 @@ def radial_ratio(theta: Float[Array, "*batch"], chi: Float[Array, "*batch"], r: 
     return value, jnp.where(back, back_ok, front_ok)
 
 
+COMPUTATION_DTYPES = (jnp.dtype(jnp.float32), jnp.dtype(jnp.float64))
+"""The dtypes jaxfish computes in (a given ``dtype=`` argument must be one of them)."""
+
+
 def resolve_dtype(dtype, *likes: ArrayLike) -> jnp.dtype:
     """``dtype`` if given, else `float_dtype` of ``likes``; canonicalised (float64 becomes float32
-    when ``jax_enable_x64`` is off, without a warning)."""
+    when ``jax_enable_x64`` is off, without a warning). A given ``dtype`` other than float32 or
+    float64 (an integer, boolean, complex or half-precision dtype) raises ``TypeError``."""
     if dtype is None:
         return float_dtype(*likes)
-    return jnp.dtype(jax.dtypes.canonicalize_dtype(dtype))
+    try:
+        given = jnp.dtype(dtype)
+    except TypeError:
+        raise TypeError(f"dtype must be float32 or float64, got {dtype!r}") from None
+    if given not in COMPUTATION_DTYPES:
+        raise TypeError(f"dtype must be float32 or float64, got {given}")
+    return jnp.dtype(jax.dtypes.canonicalize_dtype(given))
 
 
 def stack_last(arrays: list[Array]) -> Array:

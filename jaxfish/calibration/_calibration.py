@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Literal
 
 import equinox as eqx
+import numpy as np
 
 from .._numerics import resolve_dtype
 from ..cameras import AbstractCamera, WoodScapeFisheye
@@ -110,6 +111,9 @@ def crop_fisheye(camera: WoodScapeFisheye, x0: int, y0: int, width: int, height:
     width, height = int(width), int(height)
     if width <= 0 or height <= 0:
         raise ValueError(f"crop_fisheye: size must be positive, got {width}x{height}")
+    for name, value in (("x0", x0), ("y0", y0)):
+        if not np.all(np.isfinite(np.asarray(value, dtype=float))):
+            raise ValueError(f"crop_fisheye: {name} must be a finite pixel offset, got {value!r}")
     cx = camera.cx_offset + (camera.width / 2 - 0.5) - x0
     cy = camera.cy_offset + (camera.height / 2 - 0.5) - y0
     return WoodScapeFisheye(

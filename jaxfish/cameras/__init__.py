@@ -2,6 +2,7 @@
 
 from ._base import MAX_IMAGE_SIDE as MAX_IMAGE_SIDE
 from ._base import AbstractCamera as AbstractCamera
+from ._base import parameter_problem as parameter_problem
 from ._carla_wide_angle import CARLA_CAMERA_MODELS as CARLA_CAMERA_MODELS
 from ._carla_wide_angle import CarlaWideAngle as CarlaWideAngle
 from ._distortion import MAX_DISTORTED_RADIUS as MAX_DISTORTED_RADIUS

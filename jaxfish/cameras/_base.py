@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import abc
+import dataclasses
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import float_dtype, resolve_dtype
@@ -32,6 +34,19 @@ class AbstractCamera(eqx.Module):
 
     width: eqx.AbstractVar[int]
     height: eqx.AbstractVar[int]
+
+    def __check_init__(self) -> None:
+        """Refuses (``ValueError`` naming the model and the field) a camera built from concrete
+        parameters that `parameter_problem` rejects. Parameters traced by `jax.jit`, `jax.vmap` or
+        `jax.grad` are not inspected here (their invalid pixels are masked instead)."""
+        problem = parameter_problem(self)
+        if problem is not None:
+            raise ValueError(f"{type(self).__name__}: {problem}")
+
+    def domain_problem(self) -> str | None:
+        """Why this camera's (concrete, finite) parameters lie outside its model's domain, or None.
+        Models with restricted parameters (focal lengths, α, β, ξ, ...) override it."""
+        return None
 
     @abc.abstractmethod
     def project(
@@ -90,6 +105,63 @@ class AbstractCamera(eqx.Module):
             return x
 
         return jax.tree_util.tree_map(cast, self)
+
+
+def parameter_problem(camera: AbstractCamera) -> str | None:
+    """Why ``camera`` cannot image anything correctly, or None: a non-finite floating parameter, or
+    a parameter outside its model's domain (``camera.domain_problem()``: a focal length that is not
+    positive, a unified-model α outside [0, 1], ...). Cameras holding traced parameters (inside
+    `jax.jit`, `jax.vmap`, `jax.grad`) give None: there is nothing concrete to inspect. Batched
+    cameras are checked element by element."""
+    leaves = jax.tree_util.tree_leaves(camera)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return None
+    for field in dataclasses.fields(camera):
+        value = getattr(camera, field.name, None)
+        if eqx.is_array(value) and jnp.issubdtype(value.dtype, jnp.inexact) and not np.all(np.isfinite(np.asarray(value))):
+            return f"{field.name} must be finite, got {_shown(value)}"
+    return camera.domain_problem()
+
+
+def _shown(value) -> str:
+    a = np.asarray(value)
+    return repr(a.item()) if a.ndim == 0 else np.array2string(a, threshold=8)
+
+
+def focal_problem(fx, fy) -> str | None:
+    """Why focal lengths ``fx``, ``fy`` (pixels, concrete) are not both positive, or None."""
+    for name, value in (("fx", fx), ("fy", fy)):
+        if not np.all(np.asarray(value) > 0):
+            return f"the focal length {name} must be positive, got {_shown(value)}"
+    return None
+
+
+def affine_problem(c, d, e) -> str | None:
+    """Why the concrete sensor affine matrix ``[[c, d], [e, 1]]`` (OCamCalib, f-theta) is singular
+    (``c - d e == 0``: every ray would land on one line of pixels), or None."""
+    det = np.asarray(c) - np.asarray(d) * np.asarray(e)
+    if np.all(det != 0):
+        return None
+    return f"the affine matrix [[c, d], [e, 1]] must be invertible (c - d e != 0), got c={_shown(c)}, d={_shown(d)}, e={_shown(e)}"
+
+
+def interval_problem(name: str, value, low: float | None = None, high: float | None = None, *,
+                     open_low: bool = False, open_high: bool = False) -> str | None:
+    """Why the concrete ``value`` of parameter ``name`` lies outside the interval from ``low`` to
+    ``high`` (None: unbounded; ``open_*``: the end itself excluded), or None."""
+    a = np.asarray(value)
+    ok = np.ones(a.shape, bool)
+    if low is not None:
+        ok &= (a > low) if open_low else (a >= low)
+    if high is not None:
+        ok &= (a < high) if open_high else (a <= high)
+    if np.all(ok):
+        return None
+    left = "(" if open_low or low is None else "["
+    right = ")" if open_high or high is None else "]"
+    lo = "-inf" if low is None else f"{low:g}"
+    hi = "inf" if high is None else f"{high:g}"
+    return f"{name} must lie in {left}{lo}, {hi}{right}, got {_shown(value)}"
 
 
 MAX_IMAGE_SIDE = 65536

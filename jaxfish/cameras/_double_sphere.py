@@ -14,6 +14,8 @@ from ._base import (
     check_image_size,
     finite_or_invalid,
     finite_pixels,
+    focal_problem,
+    interval_problem,
     measurable_radius,
     point_direction,
 )
@@ -96,6 +98,11 @@ class DoubleSphere(AbstractCamera):
         self.width = width
         self.height = height
 
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (focal lengths positive, ``alpha`` in
+        [0, 1]), or None."""
+        return focal_problem(self.fx, self.fy) or interval_problem("alpha", self.alpha, 0.0, 1.0)
+
     @property
     def principal_point(self) -> Float[Array, "2"]:
         """``(cx, cy)`` in pixel-centre coordinates."""
@@ -122,7 +129,8 @@ class DoubleSphere(AbstractCamera):
         d2 = safe_sqrt(x * x + y * y + zz * zz)
         denom = alpha * d2 + (1 - alpha) * zz
         rising = alpha * zz + (1 - alpha) * d2  # the sign of dr/dtheta (with d1 + xi z)
-        valid = finite & (d1 > 0) & (d1 + xi * z > 0) & (denom > 0) & (rising > 0)
+        in_domain = (alpha >= 0) & (alpha <= 1)  # traced parameters outside it: nothing is valid
+        valid = finite & in_domain & (d1 > 0) & (d1 + xi * z > 0) & (denom > 0) & (rising > 0)
         inv = 1.0 / jnp.where(valid, denom, jnp.ones_like(denom))
         u = self.fx.astype(dtype) * x * inv + self.cx.astype(dtype)
         v = self.fy.astype(dtype) * y * inv + self.cy.astype(dtype)

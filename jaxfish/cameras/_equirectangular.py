@@ -9,7 +9,15 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import resolve_dtype, safe_hypot
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
+from ._base import (
+    AbstractCamera,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    finite_pixels,
+    interval_problem,
+    point_direction,
+)
 
 
 def _longitude(x: Array, z: Array) -> tuple[Array, Array]:
@@ -127,6 +135,10 @@ class Cylindrical(AbstractCamera):
         self.cy = jnp.asarray((height - 1) / 2.0 if cy is None else cy, dtype)
         self.width = width
         self.height = height
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (``f > 0``), or None."""
+        return interval_problem("f", self.f, 0.0, open_low=True)
 
     def project(
         self, points: Float[ArrayLike, "*batch 3"]

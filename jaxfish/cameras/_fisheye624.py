@@ -11,7 +11,15 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
+from ._base import (
+    AbstractCamera,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    finite_pixels,
+    focal_problem,
+    point_direction,
+)
 from ._distortion import MAX_DISTORTED_RADIUS, as_distortion, undistort, unfolded
 from ._domain import first_increasing_limit, invert_increasing
 from ._kannala_brandt import KB_THETA_MAX_MARGIN_RAD
@@ -109,6 +117,10 @@ class Fisheye624(AbstractCamera):
         self.p = as_distortion(p, 2, (2,), dtype, "Fisheye624 (p)")
         self.s = as_distortion(s, 4, (4,), dtype, "Fisheye624 (s)")
         self.width, self.height = check_image_size(width, height, "Fisheye624")
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (focal lengths positive), or None."""
+        return focal_problem(self.fx, self.fy)
 
     @property
     def principal_point(self) -> Float[Array, "2"]:

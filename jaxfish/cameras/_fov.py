@@ -25,6 +25,7 @@ from ._base import (
     check_image_size,
     finite_or_invalid,
     finite_pixels,
+    focal_problem,
     measurable_radius,
     point_direction,
 )
@@ -83,6 +84,10 @@ class FieldOfView(AbstractCamera):
         self.cy = jnp.asarray(cy, dtype=dtype)
         self.w = jnp.asarray(w, dtype=dtype)
         self.width, self.height = check_image_size(width, height, "FieldOfView")
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (focal lengths positive), or None."""
+        return focal_problem(self.fx, self.fy)
 
     @property
     def principal_point(self) -> Float[Array, "2"]:

@@ -12,7 +12,15 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
+from ._base import (
+    AbstractCamera,
+    affine_problem,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    finite_pixels,
+    point_direction,
+)
 from ._domain import invert_increasing
 from ._pixel_radius import affine_solve, first_stationary_radius, polyder, polyval
 
@@ -97,6 +105,11 @@ class FTheta(AbstractCamera):
         self.e = jnp.asarray(e, dtype=dtype)
         self.width, self.height = check_image_size(width, height, "FTheta")
 
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (an invertible affine matrix
+        ``[[c, d], [e, 1]]``: ``c - d e != 0``), or None."""
+        return affine_problem(self.c, self.d, self.e)
+
     @property
     def principal_point(self) -> Float[Array, " 2"]:
         """``(cx, cy)`` in pixel-centre coordinates."""
@@ -167,7 +180,8 @@ class FTheta(AbstractCamera):
         xs, ys = x * ratio, y * ratio
         u = self.c.astype(dtype) * xs + self.d.astype(dtype) * ys + self.cx.astype(dtype)
         v = self.e.astype(dtype) * xs + ys + self.cy.astype(dtype)
-        valid = finite & defined & inside & converged & lens
+        invertible = self.c.astype(dtype) - self.d.astype(dtype) * self.e.astype(dtype) != 0  # else one line of pixels
+        valid = finite & defined & inside & converged & lens & invertible
         return finite_or_invalid(jnp.stack([u, v], axis=-1), valid)
 
     def _initial_radius(self, bw, theta, r_lim, dtype) -> Array:

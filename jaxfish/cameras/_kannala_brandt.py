@@ -10,7 +10,15 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
+from ._base import (
+    AbstractCamera,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    finite_pixels,
+    focal_problem,
+    point_direction,
+)
 from ._domain import first_increasing_limit, invert_increasing
 
 KB_THETA_MAX_MARGIN_RAD = 1e-3
@@ -107,6 +115,10 @@ class KannalaBrandt(AbstractCamera):
         width, height = check_image_size(width, height, "KannalaBrandt")
         self.width = width
         self.height = height
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (focal lengths positive), or None."""
+        return focal_problem(self.fx, self.fy)
 
     @property
     def principal_point(self) -> Float[Array, "2"]:

@@ -9,7 +9,15 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import resolve_dtype, safe_hypot, safe_norm, safe_sqrt
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
+from ._base import (
+    AbstractCamera,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    finite_pixels,
+    focal_problem,
+    point_direction,
+)
 from ._distortion import (
     MAX_DISTORTED_RADIUS,
     as_distortion,
@@ -91,6 +99,10 @@ class MeiCamera(AbstractCamera):
         self.xi = jnp.asarray(xi, dtype=dtype)
         self.distortion = as_distortion(distortion, 4, (4,), dtype, "MeiCamera")
         self.width, self.height = check_image_size(width, height, "MeiCamera")
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (focal lengths positive), or None."""
+        return focal_problem(self.fx, self.fy)
 
     @property
     def principal_point(self) -> Float[Array, "2"]:

@@ -12,7 +12,15 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, incidence_angle, radial_ratio, resolve_dtype, safe_hypot, stack_last
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
+from ._base import (
+    AbstractCamera,
+    affine_problem,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    finite_pixels,
+    point_direction,
+)
 from ._domain import bisection_guess, invert_increasing
 from ._pixel_radius import affine_solve, first_stationary_radius, polyder, polyval
 
@@ -121,6 +129,11 @@ class OCamCalib(AbstractCamera):
         self.e = jnp.asarray(e, dtype=dtype)
         self.width, self.height = check_image_size(width, height, "OCamCalib")
 
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (an invertible affine matrix
+        ``[[c, d], [e, 1]]``: ``c - d e != 0``), or None."""
+        return affine_problem(self.c, self.d, self.e)
+
     @property
     def principal_point(self) -> Float[Array, " 2"]:
         """``(u, v) = (yc, xc)`` in jaxfish's pixel-centre convention."""
@@ -193,7 +206,8 @@ class OCamCalib(AbstractCamera):
         yo = x * ratio
         row = self.c.astype(dtype) * xo + self.d.astype(dtype) * yo + self.xc.astype(dtype)
         col = self.e.astype(dtype) * xo + yo + self.yc.astype(dtype)
-        valid = finite & defined & inside & converged & lens
+        invertible = self.c.astype(dtype) - self.d.astype(dtype) * self.e.astype(dtype) != 0  # else one line of pixels
+        valid = finite & defined & inside & converged & lens & invertible
         return finite_or_invalid(jnp.stack([col, row], axis=-1), valid)
 
     def _initial_rho(self, pol, alpha, rho_max, dtype) -> Array:

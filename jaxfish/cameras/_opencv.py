@@ -8,7 +8,15 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import resolve_dtype, safe_norm
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
+from ._base import (
+    AbstractCamera,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    finite_pixels,
+    focal_problem,
+    point_direction,
+)
 from ._distortion import (
     MAX_DISTORTED_RADIUS,
     as_distortion,
@@ -71,6 +79,10 @@ class OpenCVPinhole(AbstractCamera):
         self.cy = jnp.asarray(cy, dtype=dtype)
         self.distortion = as_distortion(distortion, 12, OPENCV_DISTORTION_LENGTHS, dtype, "OpenCVPinhole")
         self.width, self.height = check_image_size(width, height, "OpenCVPinhole")
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (focal lengths positive), or None."""
+        return focal_problem(self.fx, self.fy)
 
     @property
     def principal_point(self) -> Float[Array, "2"]:

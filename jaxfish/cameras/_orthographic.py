@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import float_dtype, resolve_dtype
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid
+from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, interval_problem
 
 
 class Orthographic(AbstractCamera):
@@ -44,6 +44,10 @@ class Orthographic(AbstractCamera):
         self.cy = jnp.asarray((height - 1) / 2.0 if cy is None else cy, dtype=dtype)
         self.width = width
         self.height = height
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (``metres_per_pixel > 0``), or None."""
+        return interval_problem("metres_per_pixel", self.metres_per_pixel, 0.0, open_low=True)
 
     @property
     def is_central(self) -> bool:

@@ -9,7 +9,15 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import resolve_dtype
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, finite_pixels, point_direction
+from ._base import (
+    AbstractCamera,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    finite_pixels,
+    focal_problem,
+    point_direction,
+)
 
 
 class Pinhole(AbstractCamera):
@@ -38,6 +46,10 @@ class Pinhole(AbstractCamera):
         width, height = check_image_size(width, height, "Pinhole")
         self.width = width
         self.height = height
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (focal lengths positive), or None."""
+        return focal_problem(self.fx, self.fy)
 
     @classmethod
     def from_fov(cls, width: int, height: int, fov_deg: float = 90.0, *, dtype=None) -> Pinhole:

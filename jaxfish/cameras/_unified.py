@@ -20,6 +20,8 @@ from ._base import (
     check_image_size,
     finite_or_invalid,
     finite_pixels,
+    focal_problem,
+    interval_problem,
     measurable_radius,
     point_direction,
 )
@@ -48,7 +50,8 @@ def eucm_project(cam, points, alpha, beta, name: str):
     nonzero = finite & ((x != 0) | (y != 0) | (z != 0))
     d = safe_sqrt(beta * (x * x + y * y) + z * z)
     w = unified_w(alpha)
-    valid = nonzero & (z > -w * d)
+    in_domain = (alpha >= 0) & (alpha <= 1) & (beta > 0)  # traced parameters outside it: nothing is valid
+    valid = nonzero & in_domain & (z > -w * d)
     denom = alpha * d + (1 - alpha) * z
     valid = valid & (denom > 0)
     inv = 1.0 / jnp.where(valid, denom, jnp.ones_like(denom))
@@ -91,7 +94,7 @@ class UnifiedCamera(AbstractCamera):
 
         u = fx X / (α d + (1-α) Z) + cx,   v = fy Y / (α d + (1-α) Z) + cy
 
-    with ``α`` in [0, 1) (α = 0 is a pinhole). Mei's ``(ξ, γ)``: ``ξ = α/(1-α)``,
+    with ``α`` in [0, 1] (α = 0 is a pinhole). Mei's ``(ξ, γ)``: ``ξ = α/(1-α)``,
     ``γ = f/(1-α)`` (`from_mei`, `xi`). Valid domain: ``Z > -w d`` with ``w = α/(1-α)`` for
     α <= 0.5 else ``(1-α)/α``, i.e. incidence angles below ``theta_max = arccos(-w)`` (more
     than 90 degrees for every α > 0). A pixel has a ray when α <= 0.5 or
@@ -119,6 +122,11 @@ class UnifiedCamera(AbstractCamera):
         width, height = check_image_size(width, height, "UnifiedCamera")
         self.width = width
         self.height = height
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (focal lengths positive, ``alpha`` in
+        [0, 1]), or None."""
+        return focal_problem(self.fx, self.fy) or interval_problem("alpha", self.alpha, 0.0, 1.0)
 
     @classmethod
     def from_mei(cls, xi, gamma_x, gamma_y, cx, cy, *, width: int, height: int, dtype=None) -> UnifiedCamera:
@@ -198,6 +206,12 @@ class ExtendedUnifiedCamera(AbstractCamera):
         width, height = check_image_size(width, height, "ExtendedUnifiedCamera")
         self.width = width
         self.height = height
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (focal lengths positive, ``alpha`` in
+        [0, 1], ``beta > 0``), or None."""
+        return (focal_problem(self.fx, self.fy) or interval_problem("alpha", self.alpha, 0.0, 1.0)
+                or interval_problem("beta", self.beta, 0.0, open_low=True))
 
     @property
     def principal_point(self) -> Float[Array, "2"]:

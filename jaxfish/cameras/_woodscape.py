@@ -13,7 +13,14 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._numerics import eps_for, float_dtype, incidence_angle, radial_ratio, resolve_dtype, safe_hypot
-from ._base import AbstractCamera, as_coordinates, check_image_size, finite_or_invalid, point_direction
+from ._base import (
+    AbstractCamera,
+    as_coordinates,
+    check_image_size,
+    finite_or_invalid,
+    interval_problem,
+    point_direction,
+)
 from ._domain import all_of_batch, bisection_bracket, first_increasing_limit
 
 T = TypeVar("T")
@@ -244,6 +251,10 @@ class WoodScapeFisheye(AbstractCamera):
         width, height = check_image_size(width, height, "WoodScapeFisheye")
         self.width = width
         self.height = height
+
+    def domain_problem(self) -> str | None:
+        """Why the parameters lie outside the model's domain (``aspect_ratio > 0``), or None."""
+        return interval_problem("aspect_ratio", self.aspect_ratio, 0.0, open_low=True)
 
     # ----------------------------------------------------------------------------- parameters
     @property

@@ -127,8 +127,12 @@ def intrinsic_range_problem(model: str, key: str, value: float) -> str | None:
         return f"a focal length must be at least {MIN_FOCAL_PX:g} pixels per radian, got {value!r}"
     if model == "fov" and key == "w" and not abs(value) < math.pi:
         return f"expected |w| below pi radians (the field of view of the ideal fisheye lens), got {value!r}"
-    if model == "mei" and key == "xi" and not value > -1:
-        return f"expected xi above -1 (at or below it the unified model sees nothing), got {value!r}"
+    if model in ("mei", "double_sphere") and key == "xi" and not value > -1:
+        return f"expected xi above -1 (at or below it the model sees nothing), got {value!r}"
+    if model in ("unified", "extended_unified", "double_sphere") and key == "alpha" and not 0 <= value <= 1:
+        return f"expected alpha in [0, 1] (outside it the model folds the image), got {value!r}"
+    if model == "extended_unified" and key == "beta" and not value > 0:
+        return f"expected beta above 0, got {value!r}"
     if model == "ocamcalib" and key == "a0" and value > -MIN_FOCAL_PX:
         return f"OCamCalib's a0 must be negative (at most {-MIN_FOCAL_PX:g} pixels), got {value!r}"
     if model == "ftheta" and key == "bw1" and not 0 < value <= 1 / MIN_FOCAL_PX:
@@ -339,8 +343,11 @@ def intrinsics_from_dict(data: Mapping[str, Any], *, source: str = "<intrinsic>"
     if name == "radial_poly" and values.get("poly_order", 4) != 4:
         raise ValueError(f"{source}: field 'intrinsic.poly_order': only 4 is supported, got {data['poly_order']!r}")
     vec = [values[k] for k in PARAMETER_NAMES[name]]
-    camera = camera_from_intrinsics(name, vec, width=int(values["width"]), height=int(values["height"]), dtype=dtype,
-                                    strings=strings)
+    try:
+        camera = camera_from_intrinsics(name, vec, width=int(values["width"]), height=int(values["height"]),
+                                        dtype=dtype, strings=strings)
+    except ValueError as e:  # a domain rule of the model (`parameter_problem`) that the checks above do not name
+        raise ValueError(f"{source}: field 'intrinsic': {e}") from None
     problem = getattr(camera, "fov_problem", lambda: None)()
     if problem is not None:
         raise ValueError(f"{source}: field 'intrinsic.fov': {problem}")

@@ -237,11 +237,9 @@ def build_lut(
     Refused: a ``target_to_source`` that is not a finite 3x3 rotation within `ROTATION_TOLERANCE`
     (a reflection, a scaled or non-finite matrix: ValueError; under `jax.jit` or `jax.vmap`, where
     it is traced, an `eqx.error_if` runtime error), a ``supersample`` that is not an integer >= 1
-    (TypeError, ValueError) and a non-floating ``dtype`` (TypeError).
+    (TypeError, ValueError) and a ``dtype`` other than float32 or float64 (TypeError).
     """
-    dtype = resolve_dtype(dtype)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"build_lut: dtype must be a floating dtype (the precision of the rays and coordinates), got {dtype}")
+    dtype = resolve_dtype(dtype)  # TypeError unless float32 or float64
     n = _supersample_count(supersample)
     r = None if target_to_source is None else _checked_rotation(target_to_source, dtype)
     offsets = jnp.asarray(supersample_offsets(n), dtype)  # (N, 2)
