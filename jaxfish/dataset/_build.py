@@ -444,10 +444,18 @@ def is_complete(out_dir: str | os.PathLike, sample: str) -> bool:
         return False
     try:
         doc = json.loads(marker.read_text())
+    except (OSError, ValueError):  # unreadable, not UTF-8, not JSON
+        return False
+    return marker_is_complete(out_dir, doc)
+
+
+def marker_is_complete(out_dir: str | os.PathLike, doc: Any) -> bool:
+    """`is_complete` of a completion marker already parsed (``doc``, the JSON value of its file)."""
+    try:
         files = doc["files"]
         if doc.get("layout_version") != LAYOUT_VERSION:
             return False
-    except (json.JSONDecodeError, KeyError, TypeError, AttributeError):
+    except (KeyError, TypeError, AttributeError):
         return False
     return all((Path(out_dir) / rel).is_file() for rel in files)
 

@@ -20,8 +20,8 @@ from ._build import (
     MARKER_DIGESTS,
     file_digest,
     finish_dataset,
-    is_complete,
     marker_differences,
+    marker_is_complete,
     remove_stale_temporaries,
 )
 from ._layout import LAYOUT_VERSION, sample_id
@@ -160,7 +160,7 @@ def _check_samples(out: Path, requested: list[str], options: BuildOptions, sourc
             doc = None  # missing or unreadable: not complete
         if isinstance(doc, dict) and doc.get("layout_version") == LAYOUT_VERSION and "files" in doc:
             _marker_files(marker, doc)
-        if not is_complete(out, sid):
+        if doc is None or not marker_is_complete(out, doc):
             incomplete.append(sid)
     if incomplete:
         raise DatasetError(f"{out}: sample(s) {sample_span(incomplete)} listed by {owner[incomplete[0]]} are not "
@@ -171,7 +171,7 @@ def _check_samples(out: Path, requested: list[str], options: BuildOptions, sourc
         try:
             doc = json.loads(marker.read_text())
         except (OSError, ValueError):
-            if marker.stem in owner:  # pragma: no cover - is_complete read it a moment ago
+            if marker.stem in owner:  # pragma: no cover - read a moment ago
                 raise DatasetError(f"{marker}: not a readable completion marker") from None
             continue
         if not isinstance(doc, dict) or doc.get("layout_version") != LAYOUT_VERSION:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .cases_shards import write_shard_records
 from .corpus import Case
 
 NOT_MERGED = ("{tmp}/ds/dataset.json", "{tmp}/ds/calibration_data")
@@ -26,15 +27,9 @@ def _records(*names: str, edit=None, marker=None):
 
         fingerprint = CaptureSource(tmp / "capture").fingerprint()
         options = BuildOptions().to_dict()
-        d = tmp / "ds" / ".shards"
-        d.mkdir(parents=True)
-        (tmp / "ds" / ".done").mkdir()
-        for name in names:
-            i, n = (int(v) for v in name.split("-of-"))
-            doc = {"format": "jaxfish-shard", "kind": "dataset", "shard": [i, n], "requested": ["00000", "00001"],
-                   "samples": ["00000", "00001"][i::n], "layout_version": LAYOUT_VERSION, "options": dict(options),
-                   "source": fingerprint, "origin": {"capture": str(tmp / "capture")}}
-            (d / f"{name}.json").write_text(json.dumps(edit(doc) or doc if edit else doc))
+        write_shard_records(tmp, names, edit=edit, fields={
+            "layout_version": LAYOUT_VERSION, "options": dict(options), "source": fingerprint,
+            "origin": {"capture": str(tmp / "capture")}})
         if marker is not None:
             (tmp / "ds" / "x.png").write_bytes(b"x")
             doc = {"sample": "00000", "layout_version": LAYOUT_VERSION, "options": dict(options),

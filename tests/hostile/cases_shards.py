@@ -16,18 +16,24 @@ def _slurm(task: str, count: str, low: str | None = None, step: str | None = Non
     return tuple((n, v) for n, v in zip(names, (task, count, low or "", step or "", high or ""), strict=True))
 
 
+def write_shard_records(tmp: Path, names, *, fields=None, edit=None) -> None:
+    """Make ``{tmp}/ds`` look like a dataset whose shards left the records ``names`` (``"I-of-N"``),
+    of samples 00000 and 00001: the record fields, updated with ``fields``, then edited by
+    ``edit(doc)`` (its result, when not None, is written)."""
+    d = tmp / "ds" / ".shards"
+    d.mkdir(parents=True)
+    (tmp / "ds" / ".done").mkdir()
+    for name in names:
+        i, n = (int(v) for v in name.split("-of-"))
+        doc = {"format": "jaxfish-shard", "kind": "dataset", "shard": [i, n], "requested": ["00000", "00001"],
+               "samples": ["00000", "00001"][i::n], "options": {}, "source": {}, "origin": None, **(fields or {})}
+        edited = edit(doc) if edit else None
+        (d / f"{name}.json").write_text(json.dumps(doc if edited is None else edited))
+
+
 def _fake_shard_records(*names: str, edit=None):
-    """A folder ``{tmp}/ds`` that looks like a dataset whose shards left the records ``names``."""
-    def setup(tmp: Path) -> None:
-        d = tmp / "ds" / ".shards"
-        d.mkdir(parents=True)
-        (tmp / "ds" / ".done").mkdir()
-        for name in names:
-            i, n = (int(v) for v in name.split("-of-"))
-            doc = {"format": "jaxfish-shard", "kind": "dataset", "shard": [i, n], "requested": ["00000", "00001"],
-                   "samples": ["00000", "00001"][i::n], "options": {}, "source": {}, "origin": None}
-            (d / f"{name}.json").write_text(json.dumps(edit(doc) if edit else doc))
-    return setup
+    """A setup making ``{tmp}/ds`` with the shard records ``names`` (`write_shard_records`)."""
+    return lambda tmp: write_shard_records(tmp, names, edit=edit)
 
 
 CASES = [

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 import jaxfish as jf
-from jaxfish.io import _correspondences as io_correspondences
 from jaxfish.refit import MAX_CORRESPONDENCE_VALUE, Correspondences, convert_camera, refit
 from jaxfish.refit._convert import MIN_AZIMUTHS
 
@@ -22,10 +21,6 @@ def _with(a: np.ndarray, index, value) -> np.ndarray:
     a = np.array(a, dtype=np.float64)
     a[index] = value
     return a
-
-
-def test_the_limits_are_the_correspondence_files_limits():
-    assert MAX_CORRESPONDENCE_VALUE == io_correspondences.MAX_CORRESPONDENCE_VALUE
 
 
 @pytest.mark.parametrize("field", ["points", "pixels"])
