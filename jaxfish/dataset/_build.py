@@ -439,14 +439,19 @@ def _batches(frames: list[int], size: int) -> list[list[int]]:
 def is_complete(out_dir: str | os.PathLike, sample: str) -> bool:
     """Whether ``sample``'s completion marker exists, was written for this `LAYOUT_VERSION` (a sample
     built for another layout is rebuilt when a build resumes), and every file it lists is present."""
-    marker = Path(out_dir) / DONE_DIR / f"{sample}.json"
+    doc = read_marker(Path(out_dir) / DONE_DIR / f"{sample}.json")
+    return doc is not None and marker_is_complete(out_dir, doc)
+
+
+def read_marker(marker: Path) -> Any:
+    """The parsed JSON of a completion marker file, or None when it is missing, not a regular file
+    (a FIFO or a device, whose read would block or never end), unreadable, not UTF-8 or not JSON."""
     if not marker.is_file():
-        return False
+        return None
     try:
-        doc = json.loads(marker.read_text())
-    except (OSError, ValueError):  # unreadable, not UTF-8, not JSON
-        return False
-    return marker_is_complete(out_dir, doc)
+        return json.loads(marker.read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def marker_is_complete(out_dir: str | os.PathLike, doc: Any) -> bool:

@@ -11,7 +11,6 @@ finished the same way: `merge_shards` lists their frames in ``capture.json``.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ from ._build import (
     finish_dataset,
     marker_differences,
     marker_is_complete,
+    read_marker,
     remove_stale_temporaries,
 )
 from ._layout import LAYOUT_VERSION, sample_id
@@ -154,10 +154,7 @@ def _check_samples(out: Path, requested: list[str], options: BuildOptions, sourc
     incomplete: list[str] = []
     for sid in requested:
         marker = out / DONE_DIR / f"{sid}.json"
-        try:
-            doc = json.loads(marker.read_text())
-        except (OSError, ValueError):
-            doc = None  # missing or unreadable: not complete
+        doc = read_marker(marker)  # None: missing or unreadable, not complete
         if isinstance(doc, dict) and doc.get("layout_version") == LAYOUT_VERSION and "files" in doc:
             _marker_files(marker, doc)
         if doc is None or not marker_is_complete(out, doc):
@@ -168,11 +165,10 @@ def _check_samples(out: Path, requested: list[str], options: BuildOptions, sourc
                            f"that shard's build again")
     done = out / DONE_DIR
     for marker in sorted(done.glob("*.json")) if done.is_dir() else []:
-        try:
-            doc = json.loads(marker.read_text())
-        except (OSError, ValueError):
+        doc = read_marker(marker)
+        if doc is None:
             if marker.stem in owner:  # pragma: no cover - read a moment ago
-                raise DatasetError(f"{marker}: not a readable completion marker") from None
+                raise DatasetError(f"{marker}: not a readable completion marker")
             continue
         if not isinstance(doc, dict) or doc.get("layout_version") != LAYOUT_VERSION:
             continue  # another layout version: rebuilt by the next build, not listed

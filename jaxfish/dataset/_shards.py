@@ -150,8 +150,12 @@ def read_record(path: Path, error: type[Exception] = DatasetError) -> dict[str, 
     naming the file (and the field)."""
     import json
 
+    from ..io._json import regular_file
+
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(regular_file(path, error, "shard record").read_text())  # not a FIFO or a device
+    except error:
+        raise
     except (OSError, ValueError) as e:
         raise error(f"{path}: not a readable shard record ({type(e).__name__}: {e})") from None
     if not isinstance(doc, dict) or doc.get("format") != SHARD_FORMAT:

@@ -504,8 +504,8 @@ def _check_header(meta: dict[str, Any], header: Path) -> None:
     if len(set(frames)) != len(frames):
         raise bad("frames", "distinct frame numbers")
     cams = meta["cameras"]
-    if not isinstance(cams, list) or not all(isinstance(c, str) and c and "/" not in c for c in cams):
-        raise bad("cameras", "a list of camera names")
+    if not isinstance(cams, list) or not cams or not all(isinstance(c, str) and c and "/" not in c for c in cams):
+        raise bad("cameras", "a non-empty list of camera names")
     if len(set(cams)) != len(cams):
         raise bad("cameras", "distinct camera names")
     faces = meta["faces"]

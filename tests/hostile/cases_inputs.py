@@ -38,4 +38,7 @@ CASES = [
          says=("c.json", "views[1].name", "'a'"), absent=("{tmp}/fit.json",)),
     Case("inputs-capture-camera-twice", "build {capture} {tmp}/out", setup=_camera_twice,
          says=("capture.json", "'cameras'", "distinct"), absent=("{tmp}/out",)),
+    Case("inputs-capture-no-camera", "build {capture} {tmp}/out",
+         setup=lambda tmp: edit_json(tmp / "capture" / "capture.json", lambda d: d["cameras"].clear()),
+         says=("capture.json", "'cameras'", "non-empty"), absent=("{tmp}/out",)),
 ]

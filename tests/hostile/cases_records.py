@@ -81,6 +81,18 @@ FV = "depth_maps/raw_data/00000_FV.npy"
 HEIGHT = "bev_height/raw_data/00000_BEV.npy"
 BEV = "bev {tmp}/ds --out {tmp}/o"
 
+def _record_from_dev_zero(tmp: Path) -> None:
+    write_shard_records(tmp, ["0-of-2", "1-of-2"])
+    (tmp / "ds" / ".shards" / "1-of-2.json").unlink()
+    (tmp / "ds" / ".shards" / "1-of-2.json").symlink_to("/dev/zero")
+
+
+def _marker_from_dev_zero(tmp: Path) -> None:
+    _records("0-of-1", edit=lambda d: {**d, "requested": ["00000"], "samples": ["00000"]}, marker=lambda d: d)(tmp)
+    (tmp / "ds" / ".done" / "00000.json").unlink()
+    (tmp / "ds" / ".done" / "00000.json").symlink_to("/dev/zero")
+
+
 CASES = [
     # jaxfish merge: shard records
     Case("records-merge-samples-renamed", "merge {tmp}/ds", setup=_records("0-of-1", edit=_renamed_samples),
@@ -138,4 +150,8 @@ CASES += [
     Case("records-build-slurm-array-huge", "build {capture} {tmp}/out",
          env=(("SLURM_ARRAY_TASK_ID", "0"), ("SLURM_ARRAY_TASK_COUNT", "2000000")),
          says=("SLURM", "more than 1000000 tasks"), absent=("{tmp}/out",)),
+    Case("records-merge-record-is-a-device", "merge {tmp}/ds", setup=_record_from_dev_zero,
+         says=("1-of-2.json", "character device"), absent=NOT_MERGED),
+    Case("records-merge-marker-is-a-device", "merge {tmp}/ds", setup=_marker_from_dev_zero,
+         says=("00000", "not complete"), absent=NOT_MERGED),
 ]
