@@ -240,6 +240,17 @@ def point_direction(p: Float[Array, "*batch 3"]) -> tuple[Array, Array, Array, B
     return x * s1 * s2, y * s1 * s2, z * s1 * s2, finite
 
 
+def clear_of_rim(denominator: Float[Array, "*batch"], x: Array, y: Array, z: Array) -> Bool[Array, "*batch"]:
+    """Whether a projection's denominator (``z`` of a pinhole, ``alpha d + (1 - alpha) z`` of the
+    unified model, ...) exceeds the dtype's machine epsilon times the point's largest component
+    ``(x, y, z)`` (as `point_direction` returns them). Points closer to the model's rim project
+    beyond ``1 / eps`` focal lengths from the principal point, far outside any image, and the
+    derivative of their pixel (``~ 1 / denominator²``) could overflow: they are invalid, so no
+    masked point sends an infinite gradient back."""
+    m = jax.lax.stop_gradient(jnp.maximum(jnp.maximum(jnp.abs(x), jnp.abs(y)), jnp.abs(z)))
+    return denominator > jnp.finfo(denominator.dtype).eps * m
+
+
 def finite_pixels(uv: Float[Array, "*batch 2"]) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
     """Pixels with non-finite rows replaced by ``(0, 0)`` and whether each was finite: unprojecting
     the placeholder keeps NaN out of the values and of the gradients of the camera parameters."""

@@ -93,7 +93,7 @@ class CarlaWideAngle(AbstractCamera):
     difference of ~1e-7 from this float64 value: below 1e-4 px over a 2000-px image).
 
     **Domain**: ``perspective`` and ``orthographic`` up to 90 degrees (``1e-6`` rad below it);
-    ``stereographic`` up to pi (exclusive), ``equidistant`` and ``equisolid`` up to pi;
+    ``stereographic`` and ``equisolid`` up to pi (exclusive), ``equidistant`` up to pi;
     ``kannala-brandt`` up to `KannalaBrandt`'s ``theta_max`` (first stationary point minus 1e-3).
     Pixels beyond the lens (orthographic ``|uv| > 1``, equisolid ``|uv| > 2``, ...) have no ray.
     ``k`` is used by ``kannala-brandt`` only (CARLA ignores it otherwise).
@@ -247,8 +247,11 @@ class CarlaWideAngle(AbstractCamera):
         theta = incidence_angle(jnp.where(nonzero, chi, 0.0), jnp.where(nonzero, z, 1.0))
         theta_over_chi, defined = radial_ratio(theta, chi, r, z)
         top = self.theta_max(dtype)
-        inside = (theta < top) if self.camera_model == "stereographic" else (theta <= top)
-        ratio = f * radius_over_theta(self.camera_model, k, jnp.minimum(theta, top)) * theta_over_chi
+        inside = (theta < top) if self.camera_model in ("stereographic", "equisolid") else (theta <= top)
+        over_theta = radius_over_theta(self.camera_model, k, jnp.minimum(theta, top))
+        if self.camera_model == "orthographic":  # sin(theta) rounding to 1 (float32): unproject has no ray
+            inside = inside & (jnp.minimum(theta, top) * over_theta < 1)
+        ratio = f * over_theta * theta_over_chi
         cx, cy = self.principal_point
         u = x * ratio + cx
         v = y * ratio + cy
@@ -287,12 +290,12 @@ class CarlaWideAngle(AbstractCamera):
             dc = jnp.minimum(d, math.pi)
             s, cos = _sinc(dc), jnp.cos(dc)
             inside = d <= math.pi * (1 + 4 * eps_for(dtype))
-        elif m == "equisolid":
-            inside = d2 <= 4 * (1 + 4 * eps_for(dtype))
+        elif m == "equisolid":  # the rim |uv| = 2 (the ray straight back) is excluded: d ray / d uv is infinite there
+            inside = d2 < 4
             dc2 = jnp.minimum(d2, 4.0)
             s, cos = jnp.sqrt(jnp.where(inside, 1 - dc2 / 4, 1.0)), 1 - dc2 / 2
-        elif m == "orthographic":
-            inside = d2 <= 1
+        elif m == "orthographic":  # the rim |uv| = 1 (90 degrees) is excluded, as in project
+            inside = d2 < 1
             s, cos = one, jnp.sqrt(jnp.where(inside, 1 - d2, 1.0))
         else:
             theta_max = self.theta_max(dtype)

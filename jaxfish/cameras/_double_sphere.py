@@ -12,6 +12,7 @@ from ._base import (
     AbstractCamera,
     as_coordinates,
     check_image_size,
+    clear_of_rim,
     finite_or_invalid,
     finite_pixels,
     focal_problem,
@@ -130,7 +131,7 @@ class DoubleSphere(AbstractCamera):
         denom = alpha * d2 + (1 - alpha) * zz
         rising = alpha * zz + (1 - alpha) * d2  # the sign of dr/dtheta (with d1 + xi z)
         in_domain = (alpha >= 0) & (alpha <= 1)  # traced parameters outside it: nothing is valid
-        valid = finite & in_domain & (d1 > 0) & (d1 + xi * z > 0) & (denom > 0) & (rising > 0)
+        valid = finite & in_domain & (d1 > 0) & (d1 + xi * z > 0) & clear_of_rim(denom, x, y, z) & (rising > 0)
         inv = 1.0 / jnp.where(valid, denom, jnp.ones_like(denom))
         u = self.fx.astype(dtype) * x * inv + self.cx.astype(dtype)
         v = self.fy.astype(dtype) * y * inv + self.cy.astype(dtype)

@@ -13,6 +13,7 @@ from ._base import (
     AbstractCamera,
     as_coordinates,
     check_image_size,
+    clear_of_rim,
     finite_or_invalid,
     finite_pixels,
     focal_problem,
@@ -155,7 +156,7 @@ class MeiCamera(AbstractCamera):
         d = safe_hypot(x, y, z)
         front = finite & (d > 0) & (z > -jax.lax.stop_gradient(mei_w(xi)) * d)
         denom = z + xi * d
-        front = front & (denom > 0)
+        front = front & clear_of_rim(denom, x, y, z)
         inv = 1.0 / jnp.where(front, denom, 1.0)
         x, y = x * inv, y * inv
         bound = jax.lax.stop_gradient(self.r_max(dtype))

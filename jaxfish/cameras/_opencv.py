@@ -12,6 +12,7 @@ from ._base import (
     AbstractCamera,
     as_coordinates,
     check_image_size,
+    clear_of_rim,
     finite_or_invalid,
     finite_pixels,
     focal_problem,
@@ -118,7 +119,7 @@ class OpenCVPinhole(AbstractCamera):
         p, dtype = as_coordinates(points, 3, "OpenCVPinhole.project: points")
         c = self.distortion.astype(dtype)
         x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
-        front = finite & (z > 0)
+        front = finite & clear_of_rim(z, x, y, z)
         inv_z = 1.0 / jnp.where(front, z, 1.0)
         x, y = x * inv_z, y * inv_z
         bound = jax.lax.stop_gradient(self.r_max(dtype))

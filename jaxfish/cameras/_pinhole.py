@@ -13,6 +13,7 @@ from ._base import (
     AbstractCamera,
     as_coordinates,
     check_image_size,
+    clear_of_rim,
     finite_or_invalid,
     finite_pixels,
     focal_problem,
@@ -75,7 +76,7 @@ class Pinhole(AbstractCamera):
         """Pixels of camera-frame points; valid where ``Z > 0``."""
         p, dtype = as_coordinates(points, 3, "Pinhole.project: points")
         x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
-        valid = finite & (z > 0)
+        valid = finite & clear_of_rim(z, x, y, z)  # z > 0, not within eps of the image plane
         inv_z = 1.0 / jnp.where(valid, z, 1.0)
         u = self.fx.astype(dtype) * x * inv_z + self.cx.astype(dtype)
         v = self.fy.astype(dtype) * y * inv_z + self.cy.astype(dtype)

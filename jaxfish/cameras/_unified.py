@@ -18,6 +18,7 @@ from ._base import (
     AbstractCamera,
     as_coordinates,
     check_image_size,
+    clear_of_rim,
     finite_or_invalid,
     finite_pixels,
     focal_problem,
@@ -53,7 +54,7 @@ def eucm_project(cam, points, alpha, beta, name: str):
     in_domain = (alpha >= 0) & (alpha <= 1) & (beta > 0)  # traced parameters outside it: nothing is valid
     valid = nonzero & in_domain & (z > -w * d)
     denom = alpha * d + (1 - alpha) * z
-    valid = valid & (denom > 0)
+    valid = valid & clear_of_rim(denom, x, y, z)
     inv = 1.0 / jnp.where(valid, denom, jnp.ones_like(denom))
     u = cam.fx.astype(dtype) * x * inv + cam.cx.astype(dtype)
     v = cam.fy.astype(dtype) * y * inv + cam.cy.astype(dtype)
