@@ -38,7 +38,9 @@ class AbstractCamera(eqx.Module):
     def __check_init__(self) -> None:
         """Refuses (``ValueError`` naming the model and the field) a camera built from concrete
         parameters that `parameter_problem` rejects. Parameters traced by `jax.jit`, `jax.vmap` or
-        `jax.grad` are not inspected here (their invalid pixels are masked instead)."""
+        `jax.grad` are not inspected here; where a traced value would fold the image, the model
+        masks every pixel instead (the unified models' α outside [0, 1] or β <= 0, the double
+        sphere's α, a singular f-theta or OCamCalib affine matrix)."""
         problem = parameter_problem(self)
         if problem is not None:
             raise ValueError(f"{type(self).__name__}: {problem}")
