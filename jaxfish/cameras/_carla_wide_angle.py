@@ -236,7 +236,10 @@ class CarlaWideAngle(AbstractCamera):
     def project(
         self, points: Float[ArrayLike, "*batch 3"]
     ) -> tuple[Float[Array, "*batch 2"], Bool[Array, "*batch"]]:
-        """Pixels ``(..., 2)`` of camera-frame points ``(..., 3)`` and their validity."""
+        """Pixels ``(..., 2)`` of camera-frame points ``(..., 3)`` and their validity. An
+        orthographic or equisolid point is valid only where its rounded pixel lies strictly inside
+        the rim that `unproject` excludes (in float32 the rays a few 1e-4 rad short of 90 degrees
+        round onto the orthographic rim)."""
         p, dtype = as_coordinates(points, 3, "CarlaWideAngle.project: points")
         k = self.k.astype(dtype)
         f = self.focal_length(dtype)
@@ -249,12 +252,14 @@ class CarlaWideAngle(AbstractCamera):
         top = self.theta_max(dtype)
         inside = (theta < top) if self.camera_model in ("stereographic", "equisolid") else (theta <= top)
         over_theta = radius_over_theta(self.camera_model, k, jnp.minimum(theta, top))
-        if self.camera_model == "orthographic":  # sin(theta) rounding to 1 (float32): unproject has no ray
-            inside = inside & (jnp.minimum(theta, top) * over_theta < 1)
         ratio = f * over_theta * theta_over_chi
         cx, cy = self.principal_point
         u = x * ratio + cx
         v = y * ratio + cy
+        if self.camera_model in ("orthographic", "equisolid"):  # the pixel, as `unproject` measures it, inside the rim
+            pu, pv = jax.lax.optimization_barrier((u, v))  # the rounded pixel (XLA would fold (u - cx) back)
+            mx, my = (pu - cx) / jnp.where(f > 0, f, 1.0), (pv - cy) / jnp.where(f > 0, f, 1.0)
+            inside = inside & (mx * mx + my * my < (1.0 if self.camera_model == "orthographic" else 4.0))
         valid = finite & defined & inside & (f > 0)
         return finite_or_invalid(jnp.stack([u, v], axis=-1), valid)
 
@@ -262,7 +267,10 @@ class CarlaWideAngle(AbstractCamera):
     def unproject(
         self, uv: Float[ArrayLike, "*batch 2"]
     ) -> tuple[Float[Array, "*batch 3"], Bool[Array, "*batch"]]:
-        """Unit rays ``(..., 3)`` of pixels ``(..., 2)`` (the shader's ray, exactly)."""
+        """Unit rays ``(..., 3)`` of pixels ``(..., 2)`` (the shader's ray, exactly). The rim of the
+        lens circle is exclusive: pixels at ``|uv| >= 1`` (orthographic) or ``|uv| >= 2``
+        (equisolid), in focal lengths from the principal point, have no ray, since ``d theta / d |uv|``
+        is infinite at the rim; every valid ray has finite derivatives."""
         uv, dtype = as_coordinates(uv, 2, "CarlaWideAngle.unproject: uv")
         uv, finite = finite_pixels(uv)
         k = self.k.astype(dtype)

@@ -23,6 +23,7 @@ from ._base import (
     AbstractCamera,
     as_coordinates,
     check_image_size,
+    clear_of_rim,
     finite_or_invalid,
     finite_pixels,
     focal_problem,
@@ -124,13 +125,17 @@ class FieldOfView(AbstractCamera):
         # The angle a = ω r_d of the point (t2 chi, z): r_d / chi = a / (t2 chi) · t2 / ω.
         s = t2 * chi
         rr = safe_hypot(s, z)
+        # (s, z) within eps of the origin (a grazing point of a lens with ω below ~eps): no image;
+        # a safe stand-in keeps ~1/rr² out of the derivatives
+        clear = clear_of_rim(rr, x, y, z)
+        s, z, rr = jnp.where(clear, s, 0.0), jnp.where(clear, z, 1.0), jnp.where(clear, rr, 1.0)
         nonzero = rr > 0
         a = incidence_angle(jnp.where(nonzero, s, 0.0), jnp.where(nonzero, z, 1.0))
         a_over_s, defined = radial_ratio(a, s, rr, z)
         ratio = a_over_s * _tan_half_ratio(w)
         u = self.fx.astype(dtype) * x * ratio + self.cx.astype(dtype)
         v = self.fy.astype(dtype) * y * ratio + self.cy.astype(dtype)
-        valid = finite & defined & lens & (safe_hypot(x, y, z) > 0)
+        valid = finite & defined & lens & clear & (safe_hypot(x, y, z) > 0)
         return finite_or_invalid(jnp.stack([u, v], axis=-1), valid)
 
     @eqx.filter_jit
