@@ -13,6 +13,7 @@ from ._base import (
     AbstractCamera,
     as_coordinates,
     check_image_size,
+    clear_of_rim,
     finite_or_invalid,
     finite_pixels,
     interval_problem,
@@ -146,8 +147,9 @@ class Cylindrical(AbstractCamera):
         """Pixels of camera-frame points; valid off the vertical axis and inside the longitude range."""
         p, dtype = as_coordinates(points, 3, "Cylindrical.project: points")
         x, y, z, finite = point_direction(p)  # exactly rescaled: huge and tiny points keep their direction
-        lon, horiz = _longitude(x, z)
-        ok = finite & (horiz > 0)
+        # within eps of the vertical axis: v beyond f / eps, and d v / d point ~ 1 / horiz² could overflow
+        ok = finite & clear_of_rim(safe_hypot(x, z), x, y, z)
+        lon, horiz = _longitude(jnp.where(ok, x, 0.0), jnp.where(ok, z, 1.0))
         lon0, lon1 = self.lon_min.astype(dtype), self.lon_max.astype(dtype)
         u = (lon - lon0) / (lon1 - lon0) * self.width - 0.5
         v = self.f.astype(dtype) * y / jnp.where(ok, horiz, 1.0) + self.cy.astype(dtype)
