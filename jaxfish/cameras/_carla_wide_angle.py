@@ -95,7 +95,8 @@ class CarlaWideAngle(AbstractCamera):
     **Domain**: ``perspective`` and ``orthographic`` up to 90 degrees (``1e-6`` rad below it);
     ``stereographic`` and ``equisolid`` up to pi (exclusive), ``equidistant`` up to pi;
     ``kannala-brandt`` up to `KannalaBrandt`'s ``theta_max`` (first stationary point minus 1e-3).
-    Pixels beyond the lens (orthographic ``|uv| > 1``, equisolid ``|uv| > 2``, ...) have no ray.
+    Pixels at or beyond the rim (orthographic ``|uv| >= 1``, equisolid ``|uv| >= 2``) or beyond the
+    lens (equidistant ``|uv| > pi``) have no ray.
     ``k`` is used by ``kannala-brandt`` only (CARLA ignores it otherwise).
 
     Fields: `fov` (degrees, vertical); `k` ``(4,)`` = ``(k0, k1, k2, k3)``; `camera_model`,
