@@ -249,3 +249,21 @@ def test_report_lines_are_never_hard_wrapped_nor_read_as_markup(tmp_path):
     proc = run_python(["-c", "from jaxfish.cli import main; main()", "convert", src, "--to", "kb", "-o", out_dir / "kb.json"])
     assert proc.returncode == 0, proc.stderr
     assert any(line == f"wrote {out_dir / 'kb.json'}" for line in proc.stdout.splitlines()), proc.stdout  # a result: stdout
+
+
+def test_an_output_beyond_the_available_memory_is_refused(tmp_path, small_calibration, monkeypatch):
+    """The estimate (80 bytes per sample) is checked against the memory available before any
+    image is read: an output that would exhaust it exits 2, naming the size, and writes nothing."""
+    from jaxfish.cli import _reproject
+
+    calib_path, calib = small_calibration
+    img = write_image(tmp_path / "fish.png", np.zeros((calib.camera.height, calib.camera.width, 3), np.uint8))
+    out = tmp_path / "o.png"
+    monkeypatch.setattr(_reproject, "_available_memory", lambda: 1 << 30)  # 1 GiB free; 4096² needs ~1.6
+    result, text = _run("reproject", img, "-c", calib_path, "-o", out, "--width", 4096, "--height", 4096)
+    assert result.exit_code == 2, text
+    assert "--width/--height4096x4096" in text and "GiBofmemoryisavailable" in text  # _run drops spaces
+    assert not out.exists()
+    monkeypatch.setattr(_reproject, "_available_memory", lambda: None)  # unknown: not refused
+    result, text = _run("reproject", img, "-c", calib_path, "-o", out, "--width", 64, "--height", 48)
+    assert result.exit_code == 0 and out.exists(), text
