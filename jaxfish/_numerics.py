@@ -98,6 +98,16 @@ def radial_ratio(theta: Float[Array, "*batch"], chi: Float[Array, "*batch"], r: 
     return value, jnp.where(back, back_ok, front_ok)
 
 
+def positive_integer(value, name: str) -> int:
+    """``value`` as an int when it is an integer >= 1 (a Python or NumPy integer, not a bool);
+    otherwise ``TypeError`` ("{name} must be an integer") or ``ValueError`` ("{name} must be >= 1 ...")."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {value!r}")
+    if value < 1:
+        raise ValueError(f"{name} must be >= 1 (a positive integer), got {value}")
+    return int(value)
+
+
 COMPUTATION_DTYPES = (jnp.dtype(jnp.float32), jnp.dtype(jnp.float64))
 """The dtypes jaxfish computes in (a given ``dtype=`` argument must be one of them)."""
 

@@ -152,9 +152,10 @@ def _check_samples(out: Path, requested: list[str], options: BuildOptions, sourc
     owner = {s: path.name for path, doc in records.items() for s in doc["samples"]}
     wanted, capture = options.to_dict(), source.fingerprint()
     incomplete: list[str] = []
+    docs: dict[str, Any] = {}  # the requested samples' markers, parsed once
     for sid in requested:
         marker = out / DONE_DIR / f"{sid}.json"
-        doc = read_marker(marker)  # None: missing or unreadable, not complete
+        doc = docs[sid] = read_marker(marker)  # None: missing or unreadable, not complete
         if isinstance(doc, dict) and doc.get("layout_version") == LAYOUT_VERSION and "files" in doc:
             _marker_files(marker, doc)
         if doc is None or not marker_is_complete(out, doc):
@@ -165,7 +166,7 @@ def _check_samples(out: Path, requested: list[str], options: BuildOptions, sourc
                            f"that shard's build again")
     done = out / DONE_DIR
     for marker in sorted(done.glob("*.json")) if done.is_dir() else []:
-        doc = read_marker(marker)
+        doc = docs[marker.stem] if marker.stem in docs else read_marker(marker)
         if doc is None:
             if marker.stem in owner:  # pragma: no cover - read a moment ago
                 raise DatasetError(f"{marker}: not a readable completion marker")

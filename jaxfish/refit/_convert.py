@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._numerics import positive_integer
 from ..cameras import AbstractCamera, CarlaWideAngle, FTheta, OCamCalib
 from ._fit import Correspondences, default_tolerances, free_parameter_mask, jit_project, jit_unproject, solve_refit
 from ._initial import INITIAL_FROM_PROFILE, initial_vector
@@ -330,7 +331,8 @@ def convert_camera(
     per free parameter and `MIN_AZIMUTHS` azimuths; in every domain, at least
     `MIN_RAYS_PER_PARAMETER` rays the source projects per free parameter.
     """
-    n_theta, n_phi = _sample_count("n_theta", n_theta), _sample_count("n_phi", n_phi)
+    n_theta = positive_integer(n_theta, "convert_camera: n_theta")
+    n_phi = positive_integer(n_phi, "convert_camera: n_phi")
     names = parameter_names(target)
     n_free = sum(free_parameter_mask(names, fixed))
     model_name = canonical_model_name(target)
@@ -401,15 +403,6 @@ def convert_camera(
         camera, *stats[:4], theta_max=jnp.asarray(top, dtype), max_radius_px=stats[4], num_samples=jnp.sum(ok),
         num_target_invalid=stats[-1], num_steps=steps, converged=converged, num_starts=len(starts),
     )
-
-
-def _sample_count(name: str, value) -> int:
-    """``value`` of the sample count ``name`` as an int: an integer >= 1, else TypeError/ValueError."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"convert_camera: {name} must be an integer, got {value!r}")
-    if value < 1:
-        raise ValueError(f"convert_camera: {name} must be >= 1, got {value}")
-    return int(value)
 
 
 @eqx.filter_jit

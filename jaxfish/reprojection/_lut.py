@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._numerics import resolve_dtype
+from .._numerics import positive_integer, resolve_dtype
 from ..cameras import AbstractCamera, Pinhole
 from ._cube import CubeRig
 
@@ -24,16 +24,6 @@ ROTATION_TOLERANCE = 1e-4
 """Largest deviation of a `build_lut` ``target_to_source`` from a rotation it accepts: of every
 entry of ``Rᵀ R`` from the identity's and of ``det R`` from +1 (a rotation rounded to float32 is
 ~1e-7 off; a reflection's determinant is -1)."""
-
-
-def _supersample_count(n) -> int:
-    """``n`` as an int: an integer >= 1 (TypeError for a bool, a float or anything else, ValueError
-    below 1)."""
-    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)):
-        raise TypeError(f"supersample must be an integer, got {n!r}")
-    if n < 1:
-        raise ValueError(f"supersample must be a positive integer, got {n}")
-    return int(n)
 
 
 def _checked_rotation(target_to_source, dtype) -> Array:
@@ -75,7 +65,7 @@ def supersample_offsets(n: int) -> np.ndarray:
     the pixel centre: a regular grid covering the pixel's square footprint. ``n = 1`` is the pixel
     centre itself.
     """
-    n = _supersample_count(n)
+    n = positive_integer(n, "supersample")
     o = (np.arange(n) + 0.5) / n - 0.5
     dv, du = np.meshgrid(o, o, indexing="ij")
     return np.stack([du.ravel(), dv.ravel()], axis=-1)
@@ -240,7 +230,7 @@ def build_lut(
     (TypeError, ValueError) and a ``dtype`` other than float32 or float64 (TypeError).
     """
     dtype = resolve_dtype(dtype)  # TypeError unless float32 or float64
-    n = _supersample_count(supersample)
+    n = positive_integer(supersample, "supersample")
     r = None if target_to_source is None else _checked_rotation(target_to_source, dtype)
     offsets = jnp.asarray(supersample_offsets(n), dtype)  # (N, 2)
     grid = target.pixel_grid(dtype)  # (H, W, 2)
