@@ -9,7 +9,6 @@ from __future__ import annotations
 import io
 import os
 import pickle
-import threading
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ import numpy as np
 
 from .._constants import FAR_DEPTH_M
 from .._errors import ImageError
+from .._sequences import KeptByOwner, acting_for, sequence_owner
 from ..groundtruth import SYNWOODSCAPE_CLASSES, SYNWOODSCAPE_PALETTE
 from ..io import (
     atomic_write_bytes,
@@ -120,30 +120,25 @@ class _LastRgb:
     """Each camera's last RGB image at t with its PNG bytes, so that the next sample of a sequence,
     whose images at t-1 are those images (the same array object: `jaxfish.pipeline.sample_truth`
     hands a sequence's images at t on), writes them as its ``previous_images`` file without
-    encoding them again: the bytes `write_image` would write. One entry per camera name;
-    thread-safe (samples written at once by several threads at worst encode again)."""
+    encoding them again: the bytes `write_image` would write. One entry per camera name and
+    sequence (`jaxfish._sequences`: the thread building it, which the writing threads act for);
+    thread-safe."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._kept: dict[str, tuple] = {}
+        self._kept = KeptByOwner()
 
     def write(self, path: Path, camera: str, rgb, png_level: int, *, keep: bool = False) -> Path:
-        """Write ``rgb`` as the PNG ``path`` (atomic), from the kept bytes when ``rgb`` is the
-        camera's kept image at this level; ``keep``: keep ``rgb`` and its bytes for the next sample."""
-        with self._lock:
-            kept = self._kept.get(camera)
-        if kept is not None and kept[0] is rgb and kept[1] == png_level:
-            data = kept[2]
-        else:
+        """Write ``rgb`` as the PNG ``path`` (atomic), from the kept bytes when ``rgb`` is a kept
+        image of the camera at this level; ``keep``: keep ``rgb`` and its bytes for the next sample."""
+        data = next((k[2] for k in self._kept.values(camera) if k[0] is rgb and k[1] == png_level), None)
+        if data is None:
             data = png_image_bytes(path, np.asarray(rgb), png_level=png_level)
         if keep:
-            with self._lock:
-                self._kept[camera] = (rgb, png_level, data)
+            self._kept.put(camera, (rgb, png_level, data))
         return atomic_write_bytes(path, data)
 
     def clear(self) -> None:
-        with self._lock:
-            self._kept.clear()
+        self._kept.clear()
 
 
 _LAST_RGB = _LastRgb()
@@ -337,10 +332,12 @@ class LayoutSink:
     def camera_jobs(self, sample: str, cam: CameraTruth, class_id: np.ndarray) -> list[Job]:
         """The writes of one camera's files (and its backward flow)."""
         root, png, thr = self.root, self.png_level, self.motion_threshold_m
+        owner = sequence_owner()  # the sequence these files continue, whichever thread writes them
 
         def files() -> list[Path]:
-            return write_camera_files(root, sample, cam, motion_threshold_m=thr, png_level=png) + \
-                write_box_files(root, sample, cam, class_id)
+            with acting_for(owner):
+                return write_camera_files(root, sample, cam, motion_threshold_m=thr, png_level=png) + \
+                    write_box_files(root, sample, cam, class_id)
 
         jobs: list[Job] = [files]
         if self.backward_flow:

@@ -15,6 +15,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from .._errors import JaxfishError
+from .._sequences import KeptByOwner
 from ..calibration import Calibration
 from ..pipeline import (
     CameraFrame,
@@ -330,10 +331,15 @@ class EmbeddedSource:
         self.cameras = _dataset_order(self.render_rig)
         self._calib_json = {n: _json_copy(calibration_to_dict(self.render_rig[n])) for n in self.cameras}
         self._rig = {n: calibration_from_dict(self._calib_json[n], source=f"<{n} calibration>") for n in self.cameras}
-        self._last: tuple | None = None  # (frame, {camera: faces at t}, BEV images at t) of the last read
+        # (frame, {camera: faces at t}, BEV images at t) of each sequence's last read
+        self._last = KeptByOwner()
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_last": None}  # renders stay in the process that made them
+        return {k: v for k, v in self.__dict__.items() if k != "_last"}  # renders stay in the process that made them
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._last = KeptByOwner()
 
     @property
     def faces(self) -> tuple[str, ...]:
@@ -444,8 +450,8 @@ class EmbeddedSource:
             return (np.asarray(img.rgb, np.uint8), decode_depth(encode_depth(img.depth_m)),
                     decode_semantic(encode_semantic(img.semantic)))
 
-        last = self._last
-        before = last if last is not None and last[0] == int(index) - 1 else None  # its t is this frame's t-1
+        # a sequence's last frame whose t is this frame's t-1
+        before = next((last for last in self._last.values("frame") if last[0] == int(index) - 1), None)
         camera_frames, kept = [], {}
         for name in self.cameras:
             cap = simulate_camera(street, self.render_rig[name], self.config,
@@ -463,7 +469,7 @@ class EmbeddedSource:
                                          prev=None if before is None else before[2])
             view = ViewFrame(ViewImages(*quantised(p)), ViewImages(*quantised(c)), np.asarray(height, np.float32))
             kept_bev = c
-        self._last = (int(index), kept, kept_bev)  # a BEV left out (None) is rendered when asked for
+        self._last.put("frame", (int(index), kept, kept_bev))  # a BEV left out (None) is rendered when asked for
         lidar, sem = simulate_lidar(street, mounts.lidar_location, self.config)
         radar = simulate_radar(street, mounts.radar_location, self.config)
         actors = _json_copy([actor_to_dict(a) for a in street.actors])

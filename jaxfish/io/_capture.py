@@ -12,7 +12,6 @@ import concurrent.futures
 import json
 import math
 import os
-import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -20,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import ImageError, JaxfishError
+from .._sequences import KeptByOwner, acting_for, sequence_owner
 from ..calibration import Calibration
 from ..cameras import MAX_IMAGE_SIDE
 from ..scene import (
@@ -205,44 +205,41 @@ def _checked(decode, path: Path, size: tuple[int, int] | None, out: np.ndarray |
     return run
 
 
-# Decoded ``curr`` images by sensor (the last one read per key), with their file bytes: one
-# frame's worth (~150 MB for four 768-px cube rigs and the BEV).
-_LAST_CURR: dict[tuple[str, ...], tuple[bytes, np.ndarray]] = {}
-_LAST_CURR_LOCK = threading.Lock()
+# Decoded ``curr`` images by sensor (the last one read per key and sequence, `jaxfish._sequences`),
+# with their file bytes: one frame's worth (~150 MB for four 768-px cube rigs and the BEV) each.
+_LAST_CURR = KeptByOwner()
 
 
 def _decoded_reusing(path: Path, key: tuple[str, ...], instant: str, decode, *, lossless: bool = False,
                      out: np.ndarray | None = None) -> np.ndarray:
-    """``decode(read_image(path))``, except that a ``prev`` file whose bytes equal the last ``curr``
-    file read under ``key`` returns that decoded array (an exact byte comparison, never a guess),
-    or copies it into ``out`` when given (the array ``decode`` also writes into)."""
+    """``decode(read_image(path))``, except that a ``prev`` file whose bytes equal a ``curr`` file
+    last read under ``key`` (by any sequence) returns that decoded array (an exact byte comparison,
+    never a guess), or copies it into ``out`` when given (the array ``decode`` also writes into)."""
     try:
         regular_file(path, ImageError, "image file")  # a FIFO would block read_bytes forever
         data = path.read_bytes()
     except (OSError, ImageError):
         return decode(read_image(path, lossless=lossless))  # read_image names the file and the reason
     if instant == "prev":
-        with _LAST_CURR_LOCK:
-            hit = _LAST_CURR.get(key)
-        if hit is not None and hit[0] == data and (out is None or hit[1].shape == out.shape):
-            if out is None:
-                return hit[1]
-            np.copyto(out, hit[1])
-            return out
+        for kept, arr in _LAST_CURR.values(key):
+            if kept == data and (out is None or arr.shape == out.shape):
+                if out is None:
+                    return arr
+                np.copyto(out, arr)
+                return out
         return decode(decode_image_bytes(path, data, lossless=lossless))
     arr = decode(decode_image_bytes(path, data, lossless=lossless))
     if out is not None:
         arr = arr.view()  # the caller's array stays writable; the kept view is not
     arr.setflags(write=False)  # shared with later readers
-    with _LAST_CURR_LOCK:
-        _LAST_CURR[key] = (data, arr)
+    _LAST_CURR.put(key, (data, arr))
     return arr
 
 
 # A camera's last ``curr`` face stacks decoded by `CaptureReader.faces_stacks` (rgb, depth,
-# semantic; read-only), by ``(capture, camera)``: the arrays `_LAST_CURR` keeps for its faces are
-# views of them.
-_LAST_STACKS: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+# semantic; read-only), by ``(capture, camera)`` and sequence: the arrays `_LAST_CURR` keeps for
+# its faces are views of them.
+_LAST_STACKS = KeptByOwner()
 
 _STACK_KINDS = ("rgb", "depth", "semantic")
 
@@ -254,36 +251,38 @@ def _is_face_of(arr: np.ndarray, stack: np.ndarray, i: int) -> bool:
 
 
 def _kept_stacks(key: tuple[str, ...], directories: Sequence[Path]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """The kept ``curr`` stacks of the camera ``key`` when every ``{kind}_prev.png`` in its face
-    ``directories`` (in stack order) is a byte copy of the ``curr`` file its face was decoded from
-    (an exact comparison of the bytes), else None."""
-    with _LAST_CURR_LOCK:
-        stacks = _LAST_STACKS.get(key)
-        hits = [[_LAST_CURR.get(key[:-1] + (key[-1], d.name, kind)) for kind in _STACK_KINDS] for d in directories]
-    if stacks is None:
-        return None
-    for i, (directory, face_hits) in enumerate(zip(directories, hits, strict=True)):
-        for kind, hit, stack in zip(_STACK_KINDS, face_hits, stacks, strict=True):
-            if hit is None or not _is_face_of(hit[1], stack, i):
-                return None
-            path = directory / f"{kind}_prev.png"
+    """The kept ``curr`` stacks of the camera ``key`` (of any sequence) of which every
+    ``{kind}_prev.png`` in its face ``directories`` (in stack order) is a byte copy of the ``curr``
+    file its face was decoded from (an exact comparison of the bytes), else None."""
+    files: dict[Path, bytes | None] = {}
+
+    def file_bytes(path: Path, size: int) -> bytes | None:
+        if path not in files:
             try:
                 regular_file(path, ImageError, "image file")
-                if path.stat().st_size != len(hit[0]):  # not a copy: not read twice
-                    return None
-                data = path.read_bytes()
+                files[path] = path.read_bytes() if path.stat().st_size == size else None  # else not a copy
             except (OSError, ImageError):
-                return None  # decoded one face at a time, whose errors name the file
-            if data != hit[0]:
-                return None
-    return stacks
+                files[path] = None  # decoded one face at a time, whose errors name the file
+        data = files[path]
+        return data if data is not None and len(data) == size else None
+
+    def matches(stacks: tuple[np.ndarray, np.ndarray, np.ndarray]) -> bool:
+        for i, directory in enumerate(directories):
+            for kind, stack in zip(_STACK_KINDS, stacks, strict=True):
+                hit = next((h for h in _LAST_CURR.values(key[:-1] + (key[-1], directory.name, kind))
+                            if _is_face_of(h[1], stack, i)), None)
+                if hit is None or file_bytes(directory / f"{kind}_prev.png", len(hit[0])) != hit[0]:
+                    return False
+        return True
+
+    return next((stacks for stacks in _LAST_STACKS.values(key) if matches(stacks)), None)
 
 
 def forget_decoded_images() -> None:
-    """Drop the decoded images `CaptureReader` keeps with ``reuse_decoded=True`` (frees ~150 MB)."""
-    with _LAST_CURR_LOCK:
-        _LAST_CURR.clear()
-        _LAST_STACKS.clear()
+    """Drop the decoded images `CaptureReader` keeps with ``reuse_decoded=True`` (frees ~150 MB
+    per sequence kept)."""
+    _LAST_CURR.clear()
+    _LAST_STACKS.clear()
 
 
 def _pose_dict(pose) -> dict[str, Any]:
@@ -656,12 +655,14 @@ class CaptureReader:
         size = self.meta.get("face_size")
         n = len(self.faces)
         kept: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray] | None] = {}
+        owner = sequence_owner()  # the sequence these decodes continue, whichever thread decodes them
         prev = [v for v in views if v[1] == "prev"] if size is not None and self._reuse_key is not None else []
         if prev:  # a camera whose prev files are byte copies of the curr files it last decoded: its curr stacks
             def check(view: tuple[str, str]):
                 camera = view[0]
-                return _kept_stacks(self._reuse_key + (camera,),
-                                    [self._frame(frame) / "cameras" / camera / f for f in self.faces])
+                with acting_for(owner):
+                    return _kept_stacks(self._reuse_key + (camera,),
+                                        [self._frame(frame) / "cameras" / camera / f for f in self.faces])
             with concurrent.futures.ThreadPoolExecutor(max(1, min(len(prev), decode_threads()))) as pool:
                 kept = dict(zip(prev, pool.map(check, prev), strict=True))
         todo = [v for v in views if kept.get(v) is None]
@@ -671,8 +672,9 @@ class CaptureReader:
         def read(job: tuple[tuple[str, str], int]) -> CameraImages:
             (camera, instant), i = job
             out = stacks[(camera, instant)]
-            return self.face(frame, camera, self.faces[i], instant, actor_ids=actor_ids,
-                             out=None if out is None else tuple(a[i] for a in out))
+            with acting_for(owner):
+                return self.face(frame, camera, self.faces[i], instant, actor_ids=actor_ids,
+                                 out=None if out is None else tuple(a[i] for a in out))
 
         with concurrent.futures.ThreadPoolExecutor(max(1, min(len(jobs) or 1, decode_threads()))) as pool:
             imgs = dict(zip(jobs, pool.map(read, jobs), strict=True))
@@ -690,8 +692,7 @@ class CaptureReader:
                 for a in out:
                     a.setflags(write=False)
                 if v[1] == "curr" and self._reuse_key is not None:
-                    with _LAST_CURR_LOCK:
-                        _LAST_STACKS[self._reuse_key + (v[0],)] = out
+                    _LAST_STACKS.put(self._reuse_key + (v[0],), out)
             if v in stacks:
                 ids = None if faces[0].actor_id is None else np.stack([f.actor_id for f in faces])
             else:

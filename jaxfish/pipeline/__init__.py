@@ -6,6 +6,8 @@ t, events, actors, ego, other sensors); `rig_constants` builds the per-calibrati
 `BevTruth`, 3D boxes); a sink writes it. Pure JAX / NumPy: nothing here reads or writes files.
 """
 
+from .._sequences import sequence_slots as sequence_slots
+from .._sequences import set_sequence_slots as set_sequence_slots
 from ._constants import BevConstants as BevConstants
 from ._constants import CameraConstants as CameraConstants
 from ._constants import EmptyCameraError as EmptyCameraError

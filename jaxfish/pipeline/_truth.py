@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import threading
 from collections.abc import Hashable, Sequence
 from typing import Any, NamedTuple
 
@@ -15,6 +14,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from .. import bev as jbev
 from .. import groundtruth as gt
+from .._sequences import KeptByOwner
 from ..cameras import AbstractCamera, Orthographic
 from ..groundtruth._rig import resolve_batch_mode
 from ..transforms import Pose
@@ -194,11 +194,12 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
     sequential = n == 1 and resolve_batch_mode(options.batch) == "loop"
     known = labels = None
     if sequential:
-        known = [_LAST_IMAGES.images_prev(k.name, k.lut, cf.faces_prev)
-                 for k, cf in zip(cams, frames[0].camera_frames, strict=True)]
-        labels = [None if im is None else _LAST_IMAGES.labels_prev(
-            k.name, _LabelInputs(k, per_sample[0], per_sample[2], frames[0].carla_tags, options))
-            for k, im in zip(cams, known, strict=True)]
+        kept = [_LAST_IMAGES.previous(k.name, k.lut, cf.faces_prev)
+                for k, cf in zip(cams, frames[0].camera_frames, strict=True)]
+        known = [None if e is None else e.images for e in kept]
+        labels = [None if e is None else _LAST_IMAGES.labels_prev(
+            e, _LabelInputs(k, per_sample[0], per_sample[2], frames[0].carla_tags, options))
+            for k, e in zip(cams, kept, strict=True)]
     rows = gt.rig_ground_truth(
         [k.lut for k in cams], [k.camera for k in cams], c2v, _Faces(**prev), _Faces(**curr), *per_sample,
         rays=[k.rays for k in cams], carla_version=frames[0].carla_tags, batch=options.batch, stacked=False,
@@ -234,6 +235,14 @@ class _LabelInputs(NamedTuple):
                                             for a, b in zip(mine[0], theirs[0], strict=True))
 
 
+class _Kept(NamedTuple):
+    source: Any  # a fisheye's LUT, the view's rays: the entry is valid for this object only
+    arrays: tuple  # the read-only arrays (cube faces, or the view's images) the images came from
+    images: Any
+    labels: tuple
+    inputs: _LabelInputs
+
+
 class _LastImages:
     """Each camera's last images at t (a fisheye's `FisheyeImages`, or a directly captured view's),
     with the arrays they were computed from (cube faces, or the view's `ViewImages`), and its
@@ -243,43 +252,42 @@ class _LastImages:
     and its labels at t-1 too when its `_LabelInputs` at t-1 are these. Only read-only arrays are
     kept (a reader's kept decodes, the embedded scene's renders, JAX arrays): a writable array
     could change before the next sample. One entry per camera (its name; `_BEV` for the top
-    view), valid for one ``source`` object (a fisheye's LUT, the view's rays); thread-safe."""
+    view) and sequence (`jaxfish._sequences`: the thread that builds it), valid for one ``source``
+    object (a fisheye's LUT, the view's rays); thread-safe."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._kept: dict[Hashable, tuple] = {}
+        self._kept = KeptByOwner()
 
     def keep(self, name: Hashable, source, arrays, images, labels: tuple, inputs: _LabelInputs) -> None:
         kept = tuple(np.asarray(getattr(arrays, f)) for f in _FACE_FIELDS)
-        with self._lock:
-            if any(a.flags.writeable for a in kept):
-                self._kept.pop(name, None)
-            else:
-                self._kept[name] = (source, kept, images, labels, inputs)
+        if any(a.flags.writeable for a in kept):
+            self._kept.pop(name)
+        else:
+            self._kept.put(name, _Kept(source, kept, images, labels, inputs))
 
-    def images_prev(self, name: Hashable, source, arrays_prev):
-        """The kept images at t when ``arrays_prev`` equal the arrays they came from, else None."""
-        kept = self._get(name, source)
-        if kept is None:
+    def previous(self, name: Hashable, source, arrays_prev) -> _Kept | None:
+        """The kept entry of ``name`` for ``source`` whose arrays equal ``arrays_prev`` (the same
+        objects, else the same bytes), or None."""
+        entries = [e for e in self._kept.values(name) if e.source is source]
+        if not entries:
             return None
         now = tuple(np.asarray(getattr(arrays_prev, f)) for f in _FACE_FIELDS)
-        return kept[2] if all(_same_bytes(a, b) for a, b in zip(kept[1], now, strict=True)) else None
+        for e in entries:
+            if all(a is b for a, b in zip(e.arrays, now, strict=True)):
+                return e
+        for e in entries:
+            if all(_same_bytes(a, b) for a, b in zip(e.arrays, now, strict=True)):
+                return e
+        return None
 
-    def labels_prev(self, name: Hashable, inputs_prev: _LabelInputs) -> tuple | None:
-        """The kept labels at t when ``inputs_prev`` equals what they were computed from, else
-        None (call it only for a camera whose kept images `images_prev` returned)."""
-        with self._lock:
-            kept = self._kept.get(name)
-        return kept[3] if kept is not None and kept[4].same(inputs_prev) else None
-
-    def _get(self, name: Hashable, source) -> tuple | None:
-        with self._lock:
-            kept = self._kept.get(name)
-        return kept if kept is not None and kept[0] is source else None
+    @staticmethod
+    def labels_prev(kept: _Kept | None, inputs_prev: _LabelInputs) -> tuple | None:
+        """The labels of a matched entry (`previous`) when ``inputs_prev`` equals what they were
+        computed from, else None."""
+        return kept.labels if kept is not None and kept.inputs.same(inputs_prev) else None
 
     def clear(self) -> None:
-        with self._lock:
-            self._kept.clear()
+        self._kept.clear()
 
 
 _FACE_FIELDS = ("rgb", "depth_m", "semantic")
@@ -320,9 +328,10 @@ def bev_truth(frame: Frame, constants: RigConstants, options: GroundTruthOptions
     k, view = constants.bev, frame.bev
     m = frame.motion
     # A sequence's next frame reuses the view's images and labels at t-1 (see `_LastImages`).
-    known = _LAST_IMAGES.images_prev(_BEV, k.rays, view.images_prev)
-    labels = None if known is None else _LAST_IMAGES.labels_prev(
-        _BEV, _LabelInputs(k, m.boxes_prev, m.vehicle_to_world_prev, frame.carla_tags, options))
+    kept = _LAST_IMAGES.previous(_BEV, k.rays, view.images_prev)
+    known = None if kept is None else kept.images
+    labels = None if kept is None else _LAST_IMAGES.labels_prev(
+        kept, _LabelInputs(k, m.boxes_prev, m.vehicle_to_world_prev, frame.carla_tags, options))
     truth = gt.view_ground_truth(k.camera, k.camera_to_vehicle, view.images_prev, view.images, m.boxes_prev, m.boxes,
                                  m.vehicle_to_world_prev, m.vehicle_to_world, carla_version=frame.carla_tags,
                                  rays=k.rays, images_prev=known, labels_prev=labels, **options.ground_truth_keywords())

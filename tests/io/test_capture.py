@@ -342,3 +342,40 @@ def test_face_stacks_are_aligned_so_that_jax_takes_them_without_a_copy(capture):
         assert a.ctypes.data % ARRAY_ALIGNMENT == 0
         if jax.default_backend() == "cpu":
             assert jax.device_put(a).unsafe_buffer_pointer() == a.ctypes.data
+
+
+def test_two_sequences_read_at_once_each_get_their_own_kept_stacks(tmp_path, capture):
+    """Two sequences (owners, e.g. two threads building samples) reading one capture alternately:
+    with a slot each (`set_sequence_slots`), a prev view that copies the curr files one of them
+    decoded gets that owner's stacks though the other read since; with one slot it is decoded again."""
+    import shutil
+
+    from jaxfish._sequences import acting_for
+    from jaxfish.io import forget_decoded_images
+    from jaxfish.pipeline import set_sequence_slots
+
+    root, *_ = capture
+    copy = tmp_path / "cap"
+    shutil.copytree(root, copy)
+    reader = CaptureReader(copy, reuse_decoded=True)
+    for face in reader.faces:
+        for kind in ("rgb", "depth", "semantic"):  # frame 1's t-1 = frame 0's t
+            shutil.copyfile(copy / f"frames/000000/cameras/FV/{face}/{kind}_curr.png",
+                            copy / f"frames/000001/cameras/FV/{face}/{kind}_prev.png")
+    before = set_sequence_slots(2)
+    try:
+        for slots, kept in ((2, True), (1, False)):
+            set_sequence_slots(slots)
+            forget_decoded_images()
+            with acting_for("a"):
+                frame0 = reader.faces_stacks(0, [("FV", "curr")])[("FV", "curr")]
+            with acting_for("b"):  # another sequence reads another frame's curr files meanwhile
+                reader.faces_stacks(1, [("FV", "curr")])
+            with acting_for("a"):
+                prev1 = reader.faces_stacks(1, [("FV", "prev")])[("FV", "prev")]
+            for k in ("rgb", "depth_m", "semantic"):
+                assert (getattr(prev1, k) is getattr(frame0, k)) == kept
+                np.testing.assert_array_equal(getattr(prev1, k), getattr(frame0, k))
+    finally:
+        set_sequence_slots(before)
+        forget_decoded_images()
