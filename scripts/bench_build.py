@@ -25,8 +25,9 @@ builds of the sample run as separate tasks).
     uv run python scripts/bench_build.py --scale 0.5 --tables-only  # half size, stage tables only
 
 ``--workers 1,2,4`` instead builds every frame of the capture (``--frames N`` when rendered) in
-whole builds, each in a fresh process: serial and on local clusters of that many pinned process
-workers (4 on 2 cores: two per core), with no compile cache (``off``), an empty one (``cold``) and
+whole builds, each in a fresh process: serial and on that many local workers of each kind of
+``--local`` (threads of the building process; a local dask cluster of pinned process workers, 4
+on 2 cores: two per core), with no compile cache (``off``), an empty one (``cold``) and
 the one the cold build filled (``warm``) (``--caches``); it prints each build's wall time
 (compilation, cluster start included), the time to its first sample, its rate after the first,
 and its rate over the second half of its samples (every worker past its start: the rate a long build
@@ -378,14 +379,14 @@ def report_contents(captures: dict[str, Path], scratch: Path, repeat: int) -> No
 
 
 # ------------------------------------------------------------------ whole builds on 1, 2, 4 workers
-def _whole_build(capture: str, out: str, workers: int, cache: str) -> dict:
-    """One whole build in this (fresh) process: ``workers`` 0 = serial; ``cache`` a folder or ""
-    (no compile cache). Returns the build's wall time (compilation, cluster start included) and
+def _whole_build(capture: str, out: str, workers: int, cache: str, processes: bool | None = None) -> dict:
+    """One whole build in this (fresh) process: ``workers`` 0 = serial, else that many local
+    workers (``processes``: `build_dataset`'s); ``cache`` a folder or "" (no compile cache). Returns the build's wall time (compilation, cluster start included) and
     its rate after the first sample (compilation excluded)."""
-    from jaxfish.dataset import BuildOptions, build_dataset
+    from jaxfish.dataset import BuildOptions, build_dataset, local_processes
 
     stamps: list[float] = []
-    cpu: list[float] = []  # this process's CPU time at each completion: a serial build's own work
+    cpu: list[float] = []  # this process's CPU time at each completion: a serial or thread build's own work
 
     def progress(_sample, _error) -> None:
         stamps.append(time.perf_counter())
@@ -393,13 +394,14 @@ def _whole_build(capture: str, out: str, workers: int, cache: str) -> dict:
 
     start = time.perf_counter()
     report = build_dataset(capture, out, options=BuildOptions(compile_cache=cache or False),
-                           workers=workers or None, progress=progress)
+                           workers=workers or None, processes=processes, progress=progress)
     wall = time.perf_counter() - start
     assert report.ok, report.summary()
     half = len(stamps) // 2 - 1
     return {"wall_s": wall, "first_s": stamps[0] - start, "after_rate": _rate(stamps), "samples": len(report.built),
             "half_rate": _rate(stamps[half:] if len(stamps) >= 4 else []),
-            "half_cpu_s": (cpu[-1] - cpu[half]) / (len(cpu) - 1 - half) if workers == 0 and len(cpu) >= 4 else None}
+            "half_cpu_s": ((cpu[-1] - cpu[half]) / (len(cpu) - 1 - half)
+                           if (workers == 0 or not local_processes(workers, processes)) and len(cpu) >= 4 else None)}
 
 
 def _rate(stamps: list[float]) -> float:
@@ -407,37 +409,40 @@ def _rate(stamps: list[float]) -> float:
     return (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 1 and stamps[-1] > stamps[0] else 0.0
 
 
-def _whole_build_in_a_process(capture: Path, out: Path, workers: int, cache: str) -> dict:
+def _whole_build_in_a_process(capture: Path, out: Path, workers: int, cache: str, processes: bool | None) -> dict:
     import json
     import subprocess
     import sys
 
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, __file__, "--whole-build", json.dumps([str(capture), str(out), workers, cache])],
+    done = subprocess.run([sys.executable, __file__, "--whole-build", json.dumps([str(capture), str(out), workers, cache, processes])],
                           capture_output=True, text=True, check=True)
     result = json.loads(done.stdout.strip().splitlines()[-1])
     result["process_s"] = time.perf_counter() - start  # Python and JAX start-up included
     return result
 
 
-def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list[str]) -> None:
+def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list[str],
+                  kinds: tuple[str, ...] = ("threads", "processes")) -> None:
     """Whole builds of every frame of ``capture``, each in a fresh process, serial (``0``) and on
-    local clusters of ``workers`` pinned process workers, with no compile cache (``off``), an
-    empty one (``cold``) and the one the cold build filled (``warm``)."""
+    ``workers`` local workers of each of ``kinds`` (threads of the building process; pinned process
+    workers of a local dask cluster), with no compile cache (``off``), an empty one (``cold``) and
+    the one the cold build filled (``warm``)."""
     print(f"whole builds of {len(_frames(capture))} samples, each in a fresh process (load {os.getloadavg()[0]:.1f}):")
     print(f"  {'build':22s} {'cache':5s} {'wall s':>7s} {'first s':>8s} {'samples/s after 1st':>20s} "
-          f"{'second half':>12s} {'CPU-s per sample, second half (serial)':>39s}")
-    for n in [0, *workers]:
-        name = "serial (--no-dask)" if n == 0 else f"--workers {n}"
-        folder = scratch / f"xla-{n}"
+          f"{'second half':>12s} {'CPU-s per sample, second half (this process)':>45s}")
+    for n, kind in [(0, "serial"), *[(n, k) for n in workers for k in kinds]]:
+        name = "serial" if n == 0 else f"--workers {n} --{kind}"
+        folder = scratch / f"xla-{n}-{kind}"
         shutil.rmtree(folder, ignore_errors=True)
         for cache in caches:
-            out = scratch / f"whole-{n}-{cache}"
-            r = _whole_build_in_a_process(capture, out, n, "" if cache == "off" else str(folder))
+            out = scratch / f"whole-{n}-{kind}-{cache}"
+            r = _whole_build_in_a_process(capture, out, n, "" if cache == "off" else str(folder),
+                                          None if n == 0 else kind == "processes")
             shutil.rmtree(out, ignore_errors=True)
             cpu = "" if r["half_cpu_s"] is None else f"{r['half_cpu_s']:.2f}"
             print(f"  {name:22s} {cache:5s} {r['wall_s']:7.1f} {r['first_s']:8.1f} {r['after_rate']:20.2f} "
-                  f"{r['half_rate']:12.2f} {cpu:>39s}", flush=True)
+                  f"{r['half_rate']:12.2f} {cpu:>45s}", flush=True)
 
 
 # ------------------------------------------------------------------ a long serial build, sample by sample
@@ -545,6 +550,8 @@ def main() -> None:
                         help="instead: whole builds of every frame on these worker counts, e.g. 1,2,4 (with a serial "
                              "one), on the textured capture (the smooth one with --content smooth)")
     parser.add_argument("--caches", default="off,cold,warm", help="compile caches of the whole builds")
+    parser.add_argument("--local", default="threads,processes",
+                        help="kinds of local workers of the whole builds (threads, processes)")
     parser.add_argument("--sequence", nargs="?", const="both", choices=("both", "capture", "memory"), default=None,
                         help="instead: a long serial build of every frame, sample by sample, from the capture and "
                              "from memory (or only one of them), on the textured capture (the smooth one with "
@@ -566,7 +573,8 @@ def main() -> None:
             return
         if args.workers:
             capture = captures.get("textured", captures.get("smooth"))
-            bench_workers(capture, scratch, [int(n) for n in args.workers.split(",")], args.caches.split(","))
+            bench_workers(capture, scratch, [int(n) for n in args.workers.split(",")], args.caches.split(","),
+                          tuple(args.local.split(",")))
             return
         report_contents(captures, scratch, args.repeat)
         if args.tables_only:

@@ -100,7 +100,7 @@ def stop_on_signals():
 
 
 def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
-              workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
+              workers: int | None, processes: bool | None, backward_flow: bool, bev: bool, write_threads: int,
               motion_threshold_m: float = 0.5, png_level: int = 1, batch_frames: int = 1, rebuild: bool = False,
               shard=None, compile_cache=True):
     """Run `jaxfish.dataset.build_dataset` of ``capture_dir`` (a capture directory or any
@@ -126,7 +126,7 @@ def run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler
 
 
 def _run_build(capture_dir, out_dir: Path, *, frames: list[int] | None, scheduler: str | None,
-               workers: int | None, processes: bool, backward_flow: bool, bev: bool, write_threads: int,
+               workers: int | None, processes: bool | None, backward_flow: bool, bev: bool, write_threads: int,
                motion_threshold_m: float, png_level: int, batch_frames: int, rebuild: bool, shard=None,
                compile_cache=True):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -210,8 +210,11 @@ def build(
     out_dir: Path = typer.Argument(..., help="Dataset directory to write (created; an existing build is resumed)."),
     frames: str | None = typer.Option(None, "--frames", "-f", help="Frames to build, e.g. 0,2,5-7 (default: all)."),
     scheduler: str | None = typer.Option(None, "--scheduler", help="Address of a dask.distributed scheduler."),
-    workers: int | None = typer.Option(None, "--workers", "-w", help="Start a local dask cluster of N workers."),
-    processes: bool = typer.Option(True, "--processes/--threads", help="Local cluster workers as processes or threads."),
+    workers: int | None = typer.Option(None, "--workers", "-w", help="Build on N local workers."),
+    processes: bool | None = typer.Option(
+        None, "--processes/--threads",
+        help="Local workers as processes (a local dask cluster) or threads of this process "
+             "(default: threads for up to 2 workers, processes beyond)."),
     backward_flow: bool = typer.Option(False, "--backward-flow", help="Also write backward flow (t -> t-1)."),
     bev: bool = typer.Option(True, "--bev/--no-bev", help="Build the top-view (BEV) camera's files."),
     write_threads: int = typer.Option(2, "--write-threads", help="Threads writing files (0 = write inline)."),

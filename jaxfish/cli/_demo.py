@@ -53,7 +53,7 @@ def demo(
     frames: int = typer.Option(2, "--frames", "-n", help="Number of samples to render and build."),
     scale: float = typer.Option(0.5, "--scale", help="Size factor of every image (1 = full SynWoodScape size)."),
     seed: int = typer.Option(0, "--seed", "-s", help="Scene seed."),
-    workers: int | None = typer.Option(None, "--workers", "-w", help="Build on a local dask cluster of N workers."),
+    workers: int | None = typer.Option(None, "--workers", "-w", help="Build on N local workers (threads up to 2, processes beyond)."),
     write_capture: bool = typer.Option(False, "--write-capture", help="Also write the rendered capture to OUT/capture "
                                        "and build from it (default: the scene goes to the builder in memory)."),
 ) -> None:
@@ -92,7 +92,7 @@ def demo(
         source, rebuild = EmbeddedSource(rig, frames=frames, seed=seed, config=config), _demo_dataset(dataset)
     # A scene rendered anew makes the samples of the one it replaced outdated: rebuild them.
     report = run_build(source, dataset, frames=list(range(frames)), scheduler=None, workers=workers,
-                       processes=True, backward_flow=False, bev=True, write_threads=2, rebuild=rebuild)
+                       processes=None, backward_flow=False, bev=True, write_threads=2, rebuild=rebuild)
     for sample in set(report.replaced) - set(report.built):  # the sheet of a sample that is gone
         (out / "contact_sheets" / f"{sample}.png").unlink(missing_ok=True)
     sheets = []

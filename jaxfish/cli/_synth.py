@@ -17,7 +17,7 @@ def synth(
     out: Path | None = typer.Option(None, "--out", "-o", help="Capture directory to write (created)."),
     build: Path | None = typer.Option(None, "--build", help="Dataset directory to build directly from the scene "
                                       "rendered in memory (no capture written; resumable like jaxfish build)."),
-    workers: int | None = typer.Option(None, "--workers", "-w", help="With --build: a local dask cluster of N workers."),
+    workers: int | None = typer.Option(None, "--workers", "-w", help="With --build: N local workers (threads up to 2, processes beyond)."),
     frames: int = typer.Option(1, "--frames", "-n", help="Number of frames (each with its t-1 instant)."),
     seed: int = typer.Option(0, "--seed", "-s", help="Scene seed (the same seed gives the same capture)."),
     face_size: int = typer.Option(1152, "--face-size", help="Cube face size in pixels (90-degree faces, 8 to 65536); a size "
@@ -75,7 +75,7 @@ def synth(
         from ._build import run_build
 
         report = run_build(EmbeddedSource(rig, frames=frames, seed=seed, config=config), build,
-                           frames=list(range(frames)), scheduler=None, workers=workers, processes=True,
+                           frames=list(range(frames)), scheduler=None, workers=workers, processes=None,
                            backward_flow=False, bev=True, write_threads=2, shard=chosen_shard)
         if not report.ok:
             raise typer.Exit(1)

@@ -3,6 +3,7 @@ the embedded scene in memory) through `jaxfish.pipeline.sample_truth` into the S
 (`LayoutSink`), resumable and scalable on dask.distributed (see ``docs/dataset.md``)."""
 
 from ._build import DONE_DIR as DONE_DIR
+from ._build import THREAD_WORKERS_MAX as THREAD_WORKERS_MAX
 from ._build import BuildInterrupted as BuildInterrupted
 from ._build import BuildOptions as BuildOptions
 from ._build import BuildReport as BuildReport
@@ -18,6 +19,7 @@ from ._build import frame_fingerprint as frame_fingerprint
 from ._build import has_bev as has_bev
 from ._build import is_complete as is_complete
 from ._build import local_cluster as local_cluster
+from ._build import local_processes as local_processes
 from ._build import remove_sample_files as remove_sample_files
 from ._build import remove_stale_temporaries as remove_stale_temporaries
 from ._build import rig_constants_of as rig_constants_of

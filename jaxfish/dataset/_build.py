@@ -15,12 +15,14 @@ each failing sample with its reason, and finally writes the dataset-level files 
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import contextlib
 import hashlib
 import json
 import os
 import pickle
+import queue
 import threading
 import time
 import traceback
@@ -32,6 +34,7 @@ import blake3
 import numpy as np
 
 from .._errors import JaxfishError
+from .._sequences import sequence_slots, set_sequence_slots
 from ..pipeline import EmptyCameraError, Frame, RigConstants, SampleTruth, SensorRecords, rig_constants, sample_truths
 from ._fingerprint import frame_fingerprint as frame_fingerprint
 from ._layout import LAYOUT, LAYOUT_VERSION, sample_id
@@ -417,7 +420,14 @@ def _batch_task(source, out_dir: str, frames: list[int], options: BuildOptions) 
 
 def _worker_batch_task(source, out_dir: str, frames: list[int],
                        options: BuildOptions) -> list[tuple[str, str | None]]:
-    """`_counted_batch_task` on the worker's kept instance of ``source`` (`_kept_source`): the dask task."""
+    """`_counted_batch_task` on the worker's kept instance of ``source`` (`_kept_source`): the dask
+    task. A worker of several threads keeps a sequence for each (`set_sequence_slots`)."""
+    with contextlib.suppress(Exception):  # outside a worker: the process's setting
+        from distributed import get_worker
+
+        threads = int(get_worker().state.nthreads)
+        if threads > sequence_slots():
+            set_sequence_slots(threads)
     return _counted_batch_task(_kept_source(source), out_dir, frames, options)
 
 
@@ -539,7 +549,7 @@ def build_dataset(
     options: BuildOptions | None = None,
     scheduler: str | None = None,
     workers: int | None = None,
-    processes: bool = True,
+    processes: bool | None = None,
     progress: Callable[[str, str | None], None] | None = None,
     rebuild: bool = False,
     shard: Shard | tuple[int, int] | None = None,
@@ -556,9 +566,10 @@ def build_dataset(
     otherwise the build raises `DatasetError` naming what differs, before writing anything, or with
     ``rebuild=True`` removes those samples' files first (`BuildReport.replaced`) and builds the
     requested ones again. Samples already complete are skipped. ``scheduler`` (a
-    dask.distributed address) or ``workers`` (start a ``LocalCluster`` of that many workers,
-    process workers unless ``processes=False``) run the samples in parallel; the output bytes are
-    those of a serial run. Process workers and this process share a GPU: they allocate its memory
+    dask.distributed address) or ``workers`` (that many local workers: threads of this process
+    with ``processes=False``, a dask ``LocalCluster`` of process workers with ``processes=True``;
+    by default threads up to `THREAD_WORKERS_MAX` workers, processes beyond) run the samples in
+    parallel; the output bytes are those of a serial run. Process workers and this process share a GPU: they allocate its memory
     as they need it (`jaxfish.dataset._runtime.share_accelerator`, unless the environment sets
     ``XLA_PYTHON_CLIENT_PREALLOCATE``; in this process only if JAX has not started before the
     call). ``progress(sample, error)`` is called after each sample (``error`` None
@@ -567,8 +578,8 @@ def build_dataset(
     samples, the capture's fingerprint and the options), ``calibration_data`` and
     ``semantic_annotations/seg_annotation_info.json``.
 
-    A ``KeyboardInterrupt`` while samples run stops the build: the workers of a local cluster end
-    (process workers are killed, thread workers stop before their next file), the files of the
+    A ``KeyboardInterrupt`` while samples run stops the build: local workers end (process workers
+    are killed, thread workers stop before their next file), the files of the
     samples cut off and the temporary files are deleted (on an external ``scheduler`` the pending
     tasks are cancelled and files are left to the resume), then `BuildInterrupted` is raised.
 
@@ -589,7 +600,7 @@ def build_dataset(
         if bad:
             raise DatasetError(f"frames must be integer frame numbers, got {bad[0]!r}")
     start = time.perf_counter()
-    if workers is not None and processes and scheduler is None:
+    if workers is not None and scheduler is None and local_processes(workers, processes):
         share_accelerator()  # before the rig below starts JAX: the workers share this process's GPU
     source = as_source(source)  # a capture with a missing / malformed header stops the build here
     source.rig()  # so do the calibrations and (for the BEV) sensors.json, before anything is written
@@ -620,7 +631,7 @@ def _shard_owner(shard: Shard, samples: Sequence[str]) -> Callable[[Path], bool]
 
 
 def _build_locked(source, out: Path, frames: Sequence[int] | None, options: BuildOptions, scheduler: str | None,
-                  workers: int | None, processes: bool, progress: Callable[[str, str | None], None] | None,
+                  workers: int | None, processes: bool | None, progress: Callable[[str, str | None], None] | None,
                   rebuild: bool, start: float, shard: Shard | None = None) -> BuildReport:
     available = source.frames
     wanted = list(available) if frames is None else [int(f) for f in frames]
@@ -662,9 +673,10 @@ def _build_locked(source, out: Path, frames: Sequence[int] | None, options: Buil
         tick(sid, err)
 
     try:
-        if todo and (scheduler is not None or workers is not None):  # absolute paths: workers may run elsewhere
-            _run_dask(_for_workers(source), str(out.resolve()), todo, options, scheduler, workers, processes,
-                      record)
+        if todo and scheduler is None and workers is not None and not local_processes(workers, processes):
+            _run_threads(source, str(out), todo, options, workers, record)
+        elif todo and (scheduler is not None or workers is not None):  # absolute paths: workers may run elsewhere
+            _run_dask(_for_workers(source), str(out.resolve()), todo, options, scheduler, workers, record)
         else:
             for frames_ in _batches(todo, options.batch_frames):
                 for result in _counted_batch_task(source, str(out), frames_, options):
@@ -695,17 +707,97 @@ def _interrupted(report: BuildReport, out: Path, todo: list[int], clean: bool, s
     return BuildInterrupted(report, [s for s in report.samples if is_complete(out, s)])
 
 
+THREAD_WORKERS_MAX = 2
+"""The most local workers `build_dataset` runs as threads of its own process when ``processes`` is
+None (more run as process workers): threads share the process's compiled programs and rig
+constants and start at once, but a sample holds Python's global interpreter lock for part of its
+time, which bounds how many of them help (docs/performance.md)."""
+
+
+def local_processes(workers: int, processes: bool | None) -> bool:
+    """Whether `build_dataset`'s ``workers`` local workers are processes (a dask ``LocalCluster``) or
+    threads of the building process: ``processes`` when given, else processes beyond
+    `THREAD_WORKERS_MAX` workers."""
+    return bool(processes) if processes is not None else int(workers) > THREAD_WORKERS_MAX
+
+
+def _thread_runs(batches: list[list[int]], workers: int) -> list[collections.deque]:
+    """``batches`` (in frame order) split into ``workers`` contiguous runs of sizes differing by at
+    most one."""
+    bounds = [round(i * len(batches) / workers) for i in range(workers + 1)]
+    return [collections.deque(batches[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def _run_threads(source, out_dir: str, frames: list[int], options: BuildOptions, workers: int,
+                 record: Callable[[str, str | None], None]) -> None:
+    """Run the samples on ``workers`` threads of this process, which share its compiled programs,
+    rig constants and source. This thread builds the first batch (each program of a sample is then
+    compiled once), then each thread builds a contiguous run of the remaining batches in frame
+    order, so that each sample after the first of a run reuses its predecessor's images at t
+    (`set_sequence_slots`: one kept frame per thread); a thread whose run is done takes the later
+    half of the longest run left. ``record`` is called in this thread. On a ``KeyboardInterrupt``
+    the threads stop before their next file and it propagates once they have ended."""
+    batches = _batches(frames, options.batch_frames)
+    for result in _counted_batch_task(source, out_dir, batches[0], options):
+        record(*result)
+    runs = _thread_runs(batches[1:], workers)
+    lock = threading.Lock()
+    results: queue.SimpleQueue = queue.SimpleQueue()
+
+    def take(i: int) -> list[int] | None:
+        with lock:
+            if not runs[i]:
+                longest = max(runs, key=len)
+                runs[i].extend(longest.pop() for _ in range(len(longest) // 2))
+                runs[i].reverse()  # popped from the end: back in frame order
+            return runs[i].popleft() if runs[i] else None
+
+    def work(i: int) -> None:
+        try:
+            while (batch := take(i)) is not None:
+                results.put(_counted_batch_task(source, out_dir, batch, options))
+        except BaseException as e:  # noqa: BLE001 - handed to the building thread, which raises it
+            results.put(e)
+        finally:
+            results.put(None)
+
+    slots = set_sequence_slots(max(sequence_slots(), workers))
+    threads = [threading.Thread(target=work, args=(i,), name=f"jaxfish-build-{i}", daemon=True) for i in range(workers)]
+    try:
+        for t in threads:
+            t.start()
+        ended = 0
+        while ended < len(threads):
+            item = results.get()
+            if item is None:
+                ended += 1
+            elif isinstance(item, BaseException):
+                raise item
+            else:
+                for result in item:
+                    record(*result)
+    except BaseException:
+        _STOP.set()  # the threads leave their samples before the next file
+        for t in threads:
+            if t.is_alive():
+                t.join()
+        raise
+    finally:
+        _STOP.clear()
+        set_sequence_slots(slots)
+
+
 def _for_workers(source):
     """The source as workers that may run elsewhere see it (a capture by its absolute path)."""
     return CaptureSource(source.root.resolve()) if isinstance(source, CaptureSource) else source
 
 
 def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, scheduler: str | None,
-              workers: int | None, processes: bool, record: Callable[[str, str | None], None]) -> None:
-    """Run the samples on a cluster. On a ``KeyboardInterrupt`` the workers of a local cluster stop
-    before it propagates: process workers are killed (their running samples are cut off), thread
-    workers stop before their next file; on an external ``scheduler`` the pending tasks are
-    cancelled and the running ones end on their own."""
+              workers: int | None, record: Callable[[str, str | None], None]) -> None:
+    """Run the samples on a cluster: ``scheduler``'s, else a local cluster of ``workers`` process
+    workers. On a ``KeyboardInterrupt`` the workers of a local cluster are killed before it
+    propagates (their running samples are cut off); on an external ``scheduler`` the pending tasks
+    are cancelled and the running ones end on their own."""
     try:
         from distributed import Client, as_completed
     except ImportError as e:  # pragma: no cover - depends on the environment
@@ -720,10 +812,10 @@ def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, sc
             except (ValueError, OSError, TimeoutError) as e:  # a malformed or unreachable address
                 raise DatasetError(f"scheduler {scheduler!r}: cannot connect ({type(e).__name__}: {e})") from None
         else:
-            cluster = local_cluster(int(workers or 1), processes=processes)  # process workers pin themselves
+            cluster = local_cluster(int(workers or 1), processes=True)  # process workers pin themselves
             client = Client(cluster)
         batches = {f"jaxfish-samples-{sample_id(b[0])}-{sample_id(b[-1])}": b for b in _batches(frames, options.batch_frames)}
-        warm = list(batches)[:WARM_BATCHES] if _warms_cache(cluster, processes, options, len(batches)) else []
+        warm = list(batches)[:WARM_BATCHES] if _warms_cache(cluster, options, len(batches)) else []
         warming = _warm_workers(client, source, options) if warm else []
         for key in warm:
             for sid, err in _counted_batch_task(source, out_dir, batches.pop(key), options):
@@ -741,7 +833,7 @@ def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, sc
                 record(sid, err)
     except KeyboardInterrupt:
         quiet = _quiet_dask_logs()  # the workers' ends are expected: no warnings, no tracebacks
-        _stop_workers(client, cluster, futures + warming, processes)
+        _stop_workers(client, cluster, futures + warming)
         raise
     finally:
         try:
@@ -821,13 +913,13 @@ workers start theirs: two, because the later samples of a build use programs its
 (about a quarter of them, measured on an 8-sample build)."""
 
 
-def _warms_cache(cluster, processes: bool, options: BuildOptions, batches: int) -> bool:
+def _warms_cache(cluster, options: BuildOptions, batches: int) -> bool:
     """Whether the driver builds the first `WARM_BATCHES` batches itself before the workers start:
-    with local process workers and a compile cache, so that the programs are compiled once (here,
-    into the cache) and the workers load them instead of all compiling them at the same time."""
+    with a local (process) cluster and a compile cache, so that the programs are compiled once
+    (here, into the cache) and the workers load them instead of all compiling them at the same time."""
     import jax
 
-    return (cluster is not None and processes and batches > WARM_BATCHES and options.compile_cache is not False
+    return (cluster is not None and batches > WARM_BATCHES and options.compile_cache is not False
             and bool(jax.config.jax_compilation_cache_dir))
 
 
@@ -849,20 +941,15 @@ def _quiet_dask_logs() -> Callable[[], None]:
     return restore
 
 
-def _stop_workers(client, cluster, futures: list, processes: bool) -> None:
+def _stop_workers(client, cluster, futures: list) -> None:
     """Stop the workers of an interrupted build: when this returns, no sample of it is written any
-    more on this machine (local process workers have ended, local thread workers left their tasks)."""
+    more by a local cluster's workers (killed); an external cluster's pending tasks are cancelled."""
     if cluster is None:  # an external cluster: its workers are not ours to end
         if client is not None and futures:
             with contextlib.suppress(Exception):
                 client.cancel(futures)
         return
-    if processes:
-        _end_local_workers(cluster)
-        return
-    _STOP.set()  # cleared once the cluster is closed: a task starting before that writes nothing
-    with _RUNNING_CHANGED:
-        _RUNNING_CHANGED.wait_for(lambda: _RUNNING[0] == 0)
+    _end_local_workers(cluster)
 
 
 def _end_local_workers(cluster) -> list[int]:
@@ -895,7 +982,8 @@ def _end_local_workers(cluster) -> list[int]:
 
 def local_cluster(workers: int, *, processes: bool = True):
     """A ``distributed.LocalCluster`` of ``workers`` single-threaded workers (processes unless
-    ``processes=False``) as `build_dataset` starts it for ``workers=N``.
+    ``processes=False``): with processes, the cluster `build_dataset` starts for local process
+    workers.
 
     Dask's nannies export ``MALLOC_TRIM_THRESHOLD_=65536`` to their workers, which turns off
     glibc's dynamic mmap threshold: every image-sized buffer then becomes a fresh, page-faulting
@@ -929,7 +1017,9 @@ def local_cluster(workers: int, *, processes: bool = True):
             kwargs["env"][CORE_SHARES_ENV] = encode_shares(core_shares(workers, cores))
         preload = dask.config.get("distributed.worker.preload", None) or []
         kwargs["preload"] = ([preload] if isinstance(preload, str) else list(preload)) + ["jaxfish.dataset._runtime"]
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+    # The workers' statistical profiler samples every thread's stack periodically for the
+    # dashboard, which these clusters do not start: it would only cost CPU time.
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ, "distributed.worker.profile.enabled": False}):
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None,
                            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, **kwargs)
 

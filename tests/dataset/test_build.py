@@ -398,7 +398,8 @@ def test_dask_workers_build_contiguous_runs_of_frames_in_order():
 
 
 def test_each_dask_worker_runs_its_frames_in_frame_order(monkeypatch):
-    """On a real (thread-worker) cluster, the submitted runs reach the workers in frame order:
+    """On a real cluster (of thread workers, behind its scheduler's address), the submitted runs
+    reach the workers in frame order:
     each worker builds its contiguous run first to last (dask alone would run the later
     submissions first). Work stealing is off so that no batch changes worker."""
     pytest.importorskip("distributed")
@@ -419,8 +420,9 @@ def test_each_dask_worker_runs_its_frames_in_frame_order(monkeypatch):
 
     monkeypatch.setattr(_build, "_counted_batch_task", task)
     recorded: list[str] = []
-    with dask.config.set({"distributed.scheduler.work-stealing": False}):
-        _build._run_dask("a source", "out", list(range(10)), BuildOptions(), None, 2, False,
+    with dask.config.set({"distributed.scheduler.work-stealing": False}), \
+            _build.local_cluster(2, processes=False) as cluster:
+        _build._run_dask("a source", "out", list(range(10)), BuildOptions(), cluster.scheduler_address, None,
                          lambda sid, err: recorded.append(sid))
     assert sorted(recorded) == [sample_id(f) for f in range(10)]
     runs = {}
@@ -531,3 +533,54 @@ def test_a_constants_error_is_raised_before_a_read_error(monkeypatch):
     with pytest.raises(DatasetError, match="intrinsic"):
         _build._constants_and_frames(source, [0], True)
     assert source.constants_key() not in _build._CACHE
+
+
+def test_local_workers_are_threads_up_to_the_limit_unless_told():
+    from jaxfish.dataset import THREAD_WORKERS_MAX, local_processes
+
+    assert not local_processes(THREAD_WORKERS_MAX, None) and local_processes(THREAD_WORKERS_MAX + 1, None)
+    assert local_processes(1, True) and not local_processes(8, False)
+
+
+def test_thread_workers_build_contiguous_runs_in_frame_order_and_share_out_the_rest(monkeypatch):
+    """`_run_threads`: this thread builds the first frame, each thread a contiguous run after it in
+    frame order; a thread done early takes the later half of the longest run left; every frame is
+    built once, the results are recorded in this thread, and the sequence slots are restored."""
+    import threading
+
+    from jaxfish.dataset import BuildOptions, _build
+    from jaxfish.pipeline import sequence_slots
+
+    ran: list[tuple[str, int]] = []
+    recorded: list[tuple[str, str]] = []
+    lock = threading.Lock()
+
+    took_over = threading.Event()
+
+    def task(source, out_dir, frames, options):
+        name = threading.current_thread().name
+        with lock:
+            ran.extend((name, f) for f in frames)
+        if name == "jaxfish-build-0" and frames[0] > 11:
+            took_over.set()
+        if name == "jaxfish-build-1":  # a slow worker: held in its first frame until the other takes over
+            assert took_over.wait(60), "hang guard: the idle thread did not take over frames"
+        return [(sample_id(f), None) for f in frames]
+
+    monkeypatch.setattr(_build, "_counted_batch_task", task)
+    before = sequence_slots()
+    _build._run_threads("a source", "out", list(range(21)), BuildOptions(), 2,
+                        lambda sid, err: recorded.append((threading.current_thread().name, sid)))
+    assert sequence_slots() == before
+    assert sorted(f for _, f in ran) == list(range(21))
+    assert {name for name, _ in recorded} == {threading.current_thread().name}
+    by_thread: dict[str, list[int]] = {}
+    for name, frame in ran:
+        by_thread.setdefault(name, []).append(frame)
+    assert by_thread[threading.current_thread().name] == [0]
+    first, second = by_thread["jaxfish-build-0"], by_thread["jaxfish-build-1"]
+    assert first[:10] == list(range(1, 11)) and second[0] == 11  # the two runs, each from its start
+    assert len(first) > 10  # the fast thread took over the slow one's later frames
+    assert second == list(range(11, 11 + len(second)))  # the slow one kept the start of its run
+    stretches = 1 + sum(b != a + 1 for a, b in zip(first, first[1:], strict=False))
+    assert stretches <= 5  # its own run, then later halves of the slow one's, each in frame order

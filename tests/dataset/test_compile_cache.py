@@ -222,7 +222,8 @@ def test_the_driver_of_local_process_workers_builds_the_first_samples_into_the_c
 
     monkeypatch.setattr(_build, "_write_sample", written_here)
     folder = use_compile_cache(True)
-    report = build_dataset(small_capture, tmp_path / "out", workers=2, options=BuildOptions(compile_cache=True))
+    report = build_dataset(small_capture, tmp_path / "out", workers=2, processes=True,
+                           options=BuildOptions(compile_cache=True))
     assert report.ok, report.summary()
     assert report.built == ["00000", "00001"] and built_here == [0]  # frame 1 on a worker
     assert folder is not None and list(folder.glob("*-cache"))

@@ -205,7 +205,7 @@ def _start_gated_build(cap: Path, tmp: Path) -> tuple[subprocess.Popen, Path, Pa
     env = dict(os.environ, **TEST_JAX_ENV, JAXFISH_TEST_GATE=str(gate),
                DASK_DISTRIBUTED__WORKER__PRELOAD=json.dumps([str(tmp / "gate.py")]))
     with open(log, "wb") as err:
-        proc = subprocess.Popen([sys.executable, "-c", _CLI, "build", str(cap), str(out), "--workers", "2"],
+        proc = subprocess.Popen([sys.executable, "-c", _CLI, "build", str(cap), str(out), "--workers", "2", "--processes"],
                                 stdout=subprocess.DEVNULL, stderr=err, env=env, start_new_session=True)
     _wait_for(lambda: (gate / "reached").exists() and all(is_complete(out, s) for s in DRIVER_SAMPLES),
               "gate reached", proc, log)
