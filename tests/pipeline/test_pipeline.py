@@ -72,6 +72,10 @@ def test_the_embedded_scene_in_memory_writes_the_bytes_of_render_capture_build(s
         assert a == b
     again = build_dataset(_embedded(), out)  # resumes from the embedded fingerprint
     assert again.ok and again.skipped == ["00000", "00001"] and not again.built
+    # Two thread workers share one embedded source (frame 1 from frame 0's renders): the same bytes.
+    threads = build_dataset(_embedded(), tmp_path / "threads", workers=2, processes=False)
+    assert threads.ok and threads.built == ["00000", "00001"], threads.summary()
+    assert tree_bytes(tmp_path / "threads") == got
 
 
 def test_consecutive_frames_share_their_instant(small_capture):
