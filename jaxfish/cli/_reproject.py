@@ -10,7 +10,7 @@ Both commands share one sample budget, `MAX_OUTPUT_SAMPLES`: the output's width 
 ``--supersample``² must not exceed 16384 x 16384; a larger output (from ``--width``/``--height``,
 the fisheye calibration of ``cube2fisheye`` or a ``--target-calibration``) is refused, naming where
 its size came from, before any image is read; so is an output whose estimated peak memory
-(`BYTES_PER_SAMPLE`) exceeds the memory available at the start.
+(`BYTES_PER_SAMPLE`, `CUBE_BYTES_PER_SAMPLE`) exceeds the memory available at the start.
 """
 
 from __future__ import annotations
@@ -37,9 +37,17 @@ buffer it cannot allocate."""
 
 BYTES_PER_SAMPLE = 80
 """Peak memory of `jaxfish reproject` per output sample (its LUT, rays and temporaries), bytes:
-measured 78–79 from 2048² to 8192² pinhole outputs of an RGB fisheye, over a base of about 0.4 GB."""
+measured 79–80 from 2048² to 8192² pinhole outputs of an RGB, label or depth fisheye (the same
+for each kind), over a base of about 0.4 GB."""
 BASE_BYTES = 400 * 2**20
-"""The commands' memory besides the samples' (the runtime, the input image), bytes."""
+"""`jaxfish reproject`'s memory besides the samples' (the runtime, the input image), bytes."""
+CUBE_BYTES_PER_SAMPLE = 120
+"""Peak memory of `jaxfish cube2fisheye` per fisheye sample (pixel x ``--supersample``²: the
+face lookups, rays and temporaries), bytes: measured 112–115 for RGB, label and depth faces at
+``--supersample`` 4 and 8 of a 1280 x 966 fisheye."""
+CUBE_BASE_BYTES = 650 * 2**20
+"""`jaxfish cube2fisheye`'s memory besides the samples' (the runtime, five decoded 1152-px
+faces), bytes."""
 
 
 def _available_memory() -> int | None:
@@ -55,11 +63,12 @@ def _available_memory() -> int | None:
     return None
 
 
-def _check_budget(width: int, height: int, supersample: int, origin: str) -> None:
+def _check_budget(width: int, height: int, supersample: int, origin: str, *, per_sample: int = BYTES_PER_SAMPLE,
+                  base: int = BASE_BYTES) -> None:
     """Refuse an output of ``width x height`` pixels at ``supersample``² rays per pixel beyond
-    `MAX_OUTPUT_SAMPLES`, or one whose estimated peak memory (`BYTES_PER_SAMPLE` per sample over
-    `BASE_BYTES`) exceeds the memory available now; ``origin`` names where the size came from
-    (options or file and fields)."""
+    `MAX_OUTPUT_SAMPLES`, or one whose estimated peak memory (``per_sample`` bytes per sample over
+    ``base``: `reproject`'s by default) exceeds the memory available now; ``origin`` names where
+    the size came from (options or file and fields)."""
     samples = width * height * supersample * supersample
     if samples > MAX_OUTPUT_SAMPLES:
         raise fail(f"{origin} {width}x{height}: more than {MAX_OUTPUT_SAMPLES} samples at --supersample {supersample} "
@@ -67,10 +76,10 @@ def _check_budget(width: int, height: int, supersample: int, origin: str) -> Non
                    "--supersample 1); lower --supersample or the output size")
     if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
         raise fail(f"{origin} {width}x{height}: at most {MAX_IMAGE_SIDE} pixels per side")
-    need, available = BASE_BYTES + samples * BYTES_PER_SAMPLE, _available_memory()
+    need, available = base + samples * per_sample, _available_memory()
     if available is not None and need > available:
         raise fail(f"{origin} {width}x{height} at --supersample {supersample}: needs about {need / 2**30:.1f} GiB "
-                   f"({BYTES_PER_SAMPLE} bytes per sample), {available / 2**30:.1f} GiB of memory is available; "
+                   f"({per_sample} bytes per sample), {available / 2**30:.1f} GiB of memory is available; "
                    "lower --supersample or the output size")
 
 
@@ -238,7 +247,8 @@ def cube2fisheye(
             )
         names = FIVE_FACES + (("back",) if paths["back"] is not None else ())
         calib = load_calibration(calibration, apply_errata=errata)
-        _check_budget(calib.camera.width, calib.camera.height, supersample, f"{calibration}: intrinsic.width/height")
+        _check_budget(calib.camera.width, calib.camera.height, supersample, f"{calibration}: intrinsic.width/height",
+                      per_sample=CUBE_BYTES_PER_SAMPLE, base=CUBE_BASE_BYTES)
         images, size = [], None
         for name in names:
             img = read_image(paths[name], lossless=kind != "rgb" and paths[name].suffix.lower() == ".png")

@@ -267,3 +267,24 @@ def test_an_output_beyond_the_available_memory_is_refused(tmp_path, small_calibr
     monkeypatch.setattr(_reproject, "_available_memory", lambda: None)  # unknown: not refused
     result, text = _run("reproject", img, "-c", calib_path, "-o", out, "--width", 64, "--height", 48)
     assert result.exit_code == 0 and out.exists(), text
+
+
+def test_cube2fisheye_refuses_a_supersampled_fisheye_beyond_the_available_memory(tmp_path, small_calibration,
+                                                                                   monkeypatch):
+    """cube2fisheye's own estimate (`CUBE_BYTES_PER_SAMPLE` per fisheye pixel x supersample²) names
+    the calibration file and the per-sample figure; nothing is written."""
+    from jaxfish.cli import _reproject
+
+    calib_path, calib = small_calibration
+    faces = _faces(tmp_path / "rgb", "rgb")
+    out = tmp_path / "fisheye.png"
+    samples = calib.camera.width * calib.camera.height * 16 * 16
+    need = _reproject.CUBE_BASE_BYTES + samples * _reproject.CUBE_BYTES_PER_SAMPLE
+    monkeypatch.setattr(_reproject, "_available_memory", lambda: need - 1)
+    result, text = _run("cube2fisheye", "--faces", faces, "--calibration", calib_path, "--out", out, "--supersample", 16)
+    assert result.exit_code == 2, text
+    assert "intrinsic.width/height" in text and f"({_reproject.CUBE_BYTES_PER_SAMPLE}bytespersample)" in text
+    assert not out.exists()
+    monkeypatch.setattr(_reproject, "_available_memory", lambda: need)  # just enough: built
+    result, text = _run("cube2fisheye", "--faces", faces, "--calibration", calib_path, "--out", out, "--supersample", 16)
+    assert result.exit_code == 0 and out.exists(), text
