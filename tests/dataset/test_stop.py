@@ -353,3 +353,57 @@ def test_ctrl_c_stops_thread_workers_before_their_next_file(small_capture, refer
     report = build_dataset(small_capture, out)
     assert report.ok
     assert_same_tree(reference_build[0], out)
+
+
+_THREAD_GATE = '''
+import os, pathlib, time
+from jaxfish.dataset import _build
+
+GATE = pathlib.Path(os.environ["JAXFISH_TEST_GATE"])
+_original = _build._sample_extras
+
+
+def _gated(reader, frame, out, sid):
+    if frame == 1:  # the first frame the building thread leaves to its thread workers
+        (GATE / "reached").touch()
+        while not _build._STOP.is_set():  # until the signal has reached the building thread
+            time.sleep(0.01)
+    return _original(reader, frame, out, sid)
+
+
+_build._sample_extras = _gated
+'''
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_stops_the_default_thread_workers_of_jaxfish_build(dask_capture, tmp_path, sig):
+    """``jaxfish build --workers 2`` (thread workers, the default for two), signalled while a thread
+    is half-way through frame 1: exit 130, one ``interrupted:`` line, no traceback; frame 1's files
+    are gone, frame 0 (the building thread's) stays complete, nothing is half-written; a resume
+    gives the reference bytes."""
+    cap, reference = dask_capture
+    gate, out, log = tmp_path / "gate", tmp_path / "dataset", tmp_path / "stderr.txt"
+    gate.mkdir()
+    (tmp_path / "thread_gate.py").write_text(_THREAD_GATE)
+    script = f"import sys; sys.path.insert(0, {str(tmp_path)!r}); import thread_gate; " + _CLI
+    env = dict(os.environ, **TEST_JAX_ENV, JAXFISH_TEST_GATE=str(gate))
+    with open(log, "wb") as err:
+        proc = subprocess.Popen([sys.executable, "-c", script, "build", str(cap), str(out), "--workers", "2"],
+                                stdout=subprocess.DEVNULL, stderr=err, env=env, start_new_session=True)
+    try:
+        _wait_for(lambda: (gate / "reached").exists(), "gate reached", proc, log)
+        assert _files_of(out, sample_id(1)), "the gated frame stops after its camera files"
+        os.killpg(proc.pid, sig)
+        _wait_for(lambda: proc.poll() is not None, "exit of the build")
+    finally:
+        proc.kill()
+    stderr = log.read_text()
+    assert proc.returncode == 130, stderr[-3000:]
+    assert "Traceback" not in stderr, stderr[-3000:]
+    lines = [ln for ln in stderr.splitlines() if ln.startswith("interrupted:")]
+    assert len(lines) == 1 and "resume" in lines[0], stderr[-3000:]
+    assert is_complete(out, sample_id(0)) and not _files_of(out, sample_id(1))
+    assert not _half_written(out)
+    report = build_dataset(cap, out)
+    assert report.ok and sample_id(1) in report.built
+    assert_same_tree(reference, out)
