@@ -191,8 +191,6 @@ def _outdated_error(out: Path, outdated: dict[str, list[str]]) -> DatasetError:
 
 # ------------------------------------------------------------------- stopping thread workers
 _STOP = threading.Event()  # set while an interrupted build stops the samples running in this process's threads
-_RUNNING = [0]  # tasks running in this process
-_RUNNING_CHANGED = threading.Condition()
 
 
 class _Stopped(DatasetError):
@@ -202,18 +200,6 @@ class _Stopped(DatasetError):
 def _check_stop() -> None:
     if _STOP.is_set():
         raise _Stopped("build interrupted")
-
-
-@contextlib.contextmanager
-def _running():
-    with _RUNNING_CHANGED:
-        _RUNNING[0] += 1
-    try:
-        yield
-    finally:
-        with _RUNNING_CHANGED:
-            _RUNNING[0] -= 1
-            _RUNNING_CHANGED.notify_all()
 
 
 
@@ -433,12 +419,11 @@ def _worker_batch_task(source, out_dir: str, frames: list[int],
 
 def _counted_batch_task(source, out_dir: str, frames: list[int],
                         options: BuildOptions) -> list[tuple[str, str | None]]:
-    """`_batch_task` counted in ``_RUNNING`` (the serial and dask task): a thread worker of an
-    interrupted build writes nothing more."""
-    with _running():
-        if _STOP.is_set():
-            return [(sample_id(f), "build interrupted") for f in frames]
-        return _batch_task(source, out_dir, frames, options)
+    """`_batch_task`, unless this process's build was interrupted (`_STOP`): a thread worker of an
+    interrupted build starts nothing more (the serial, thread and dask task)."""
+    if _STOP.is_set():
+        return [(sample_id(f), "build interrupted") for f in frames]
+    return _batch_task(source, out_dir, frames, options)
 
 
 def _batches(frames: list[int], size: int) -> list[list[int]]:
@@ -721,11 +706,10 @@ def local_processes(workers: int, processes: bool | None) -> bool:
     return bool(processes) if processes is not None else int(workers) > THREAD_WORKERS_MAX
 
 
-def _thread_runs(batches: list[list[int]], workers: int) -> list[collections.deque]:
-    """``batches`` (in frame order) split into ``workers`` contiguous runs of sizes differing by at
-    most one."""
-    bounds = [round(i * len(batches) / workers) for i in range(workers + 1)]
-    return [collections.deque(batches[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+def _contiguous_runs(items: list, n: int) -> list[list]:
+    """``items`` (in frame order) split into ``n`` contiguous runs of sizes differing by at most one."""
+    bounds = [round(i * len(items) / n) for i in range(n + 1)]
+    return [items[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
 def _run_threads(source, out_dir: str, frames: list[int], options: BuildOptions, workers: int,
@@ -740,7 +724,7 @@ def _run_threads(source, out_dir: str, frames: list[int], options: BuildOptions,
     batches = _batches(frames, options.batch_frames)
     for result in _counted_batch_task(source, out_dir, batches[0], options):
         record(*result)
-    runs = _thread_runs(batches[1:], workers)
+    runs = [collections.deque(run) for run in _contiguous_runs(batches[1:], workers)]
     lock = threading.Lock()
     results: queue.SimpleQueue = queue.SimpleQueue()
 
@@ -842,8 +826,7 @@ def _run_dask(source, out_dir: str, frames: list[int], options: BuildOptions, sc
                     with contextlib.suppress(*(() if quiet is None else (Exception,))):
                         closable.close()
         finally:
-            _STOP.clear()
-            with _CACHE_LOCK:  # thread workers (local or behind a scheduler) kept the source in this process
+            with _CACHE_LOCK:  # thread workers behind a scheduler in this process kept the source here
                 _KEPT.clear()
             if quiet is not None:
                 quiet()
@@ -870,8 +853,7 @@ def _worker_runs(client, keys: list[str]) -> list[tuple[str, str | None]]:
     addresses = _worker_addresses(client)
     if len(addresses) < 2:
         return [(key, None) for key in keys]
-    bounds = [round(i * len(keys) / len(addresses)) for i in range(len(addresses) + 1)]
-    runs = [list(zip(keys[a:b], [w] * (b - a), strict=True)) for w, a, b in zip(addresses, bounds[:-1], bounds[1:], strict=True)]
+    runs = [[(key, w) for key in run] for w, run in zip(addresses, _contiguous_runs(keys, len(addresses)), strict=True)]
     return [run[step] for step in range(max(map(len, runs))) for run in runs if step < len(run)]
 
 

@@ -254,17 +254,26 @@ def _kept_stacks(key: tuple[str, ...], directories: Sequence[Path]) -> tuple[np.
     """The kept ``curr`` stacks of the camera ``key`` (of any sequence) of which every
     ``{kind}_prev.png`` in its face ``directories`` (in stack order) is a byte copy of the ``curr``
     file its face was decoded from (an exact comparison of the bytes), else None."""
-    files: dict[Path, bytes | None] = {}
+    files: dict[Path, tuple[int, bytes | None]] = {}  # file size, and its bytes once read
 
     def file_bytes(path: Path, size: int) -> bytes | None:
+        """The file's bytes when it has ``size`` bytes (a possible copy), else None: read once."""
         if path not in files:
             try:
                 regular_file(path, ImageError, "image file")
-                files[path] = path.read_bytes() if path.stat().st_size == size else None  # else not a copy
+                files[path] = (path.stat().st_size, None)
             except (OSError, ImageError):
-                files[path] = None  # decoded one face at a time, whose errors name the file
-        data = files[path]
-        return data if data is not None and len(data) == size else None
+                files[path] = (-1, None)  # decoded one face at a time, whose errors name the file
+        length, data = files[path]
+        if length != size:
+            return None
+        if data is None:
+            try:
+                data = path.read_bytes()
+            except OSError:
+                data = b""  # no copy: decoded with the others, whose errors name the file
+            files[path] = (length, data)
+        return data
 
     def matches(stacks: tuple[np.ndarray, np.ndarray, np.ndarray]) -> bool:
         for i, directory in enumerate(directories):

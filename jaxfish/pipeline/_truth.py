@@ -197,8 +197,8 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
         kept = [_LAST_IMAGES.previous(k.name, k.lut, cf.faces_prev)
                 for k, cf in zip(cams, frames[0].camera_frames, strict=True)]
         known = [None if e is None else e.images for e in kept]
-        labels = [None if e is None else _LAST_IMAGES.labels_prev(
-            e, _LabelInputs(k, per_sample[0], per_sample[2], frames[0].carla_tags, options))
+        labels = [None if e is None else e.labels_for(
+            _LabelInputs(k, per_sample[0], per_sample[2], frames[0].carla_tags, options))
             for k, e in zip(cams, kept, strict=True)]
     rows = gt.rig_ground_truth(
         [k.lut for k in cams], [k.camera for k in cams], c2v, _Faces(**prev), _Faces(**curr), *per_sample,
@@ -242,6 +242,10 @@ class _Kept(NamedTuple):
     labels: tuple
     inputs: _LabelInputs
 
+    def labels_for(self, inputs_prev: _LabelInputs) -> tuple | None:
+        """The kept labels when ``inputs_prev`` equals what they were computed from, else None."""
+        return self.labels if self.inputs.same(inputs_prev) else None
+
 
 class _LastImages:
     """Each camera's last images at t (a fisheye's `FisheyeImages`, or a directly captured view's),
@@ -272,19 +276,7 @@ class _LastImages:
         if not entries:
             return None
         now = tuple(np.asarray(getattr(arrays_prev, f)) for f in _FACE_FIELDS)
-        for e in entries:
-            if all(a is b for a, b in zip(e.arrays, now, strict=True)):
-                return e
-        for e in entries:
-            if all(_same_bytes(a, b) for a, b in zip(e.arrays, now, strict=True)):
-                return e
-        return None
-
-    @staticmethod
-    def labels_prev(kept: _Kept | None, inputs_prev: _LabelInputs) -> tuple | None:
-        """The labels of a matched entry (`previous`) when ``inputs_prev`` equals what they were
-        computed from, else None."""
-        return kept.labels if kept is not None and kept.inputs.same(inputs_prev) else None
+        return next((e for e in entries if all(_same_bytes(a, b) for a, b in zip(e.arrays, now, strict=True))), None)
 
     def clear(self) -> None:
         self._kept.clear()
@@ -330,8 +322,8 @@ def bev_truth(frame: Frame, constants: RigConstants, options: GroundTruthOptions
     # A sequence's next frame reuses the view's images and labels at t-1 (see `_LastImages`).
     kept = _LAST_IMAGES.previous(_BEV, k.rays, view.images_prev)
     known = None if kept is None else kept.images
-    labels = None if kept is None else _LAST_IMAGES.labels_prev(
-        kept, _LabelInputs(k, m.boxes_prev, m.vehicle_to_world_prev, frame.carla_tags, options))
+    labels = None if kept is None else kept.labels_for(
+        _LabelInputs(k, m.boxes_prev, m.vehicle_to_world_prev, frame.carla_tags, options))
     truth = gt.view_ground_truth(k.camera, k.camera_to_vehicle, view.images_prev, view.images, m.boxes_prev, m.boxes,
                                  m.vehicle_to_world_prev, m.vehicle_to_world, carla_version=frame.carla_tags,
                                  rays=k.rays, images_prev=known, labels_prev=labels, **options.ground_truth_keywords())
