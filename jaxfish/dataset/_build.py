@@ -365,6 +365,10 @@ def _write_sample(source, out: Path, truth: SampleTruth, options: BuildOptions, 
 def _prepare_process(options: BuildOptions) -> None:
     use_compile_cache(options.compile_cache)  # idempotent: configured before this process's first program
     openexr_in_calling_thread()  # the builder's own threads write and read the files
+    _tune_allocator(options)
+
+
+def _tune_allocator(options: BuildOptions) -> None:
     if options.tune_allocator or "MALLOC_TRIM_THRESHOLD_" in os.environ:
         # In the process that builds (a dask worker or the serial build's). A fixed trim threshold
         # in the environment (dask's nannies set one) has already turned glibc's dynamic mmap
@@ -587,6 +591,7 @@ def build_dataset(
     start = time.perf_counter()
     if workers is not None and scheduler is None and local_processes(workers, processes):
         share_accelerator()  # before the rig below starts JAX: the workers share this process's GPU
+    _tune_allocator(options)  # before this build's threads allocate: they then share the tuned heaps
     source = as_source(source)  # a capture with a missing / malformed header stops the build here
     source.rig()  # so do the calibrations and (for the BEV) sensors.json, before anything is written
     if options.bev and source.has_bev():

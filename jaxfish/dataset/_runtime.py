@@ -17,21 +17,27 @@ from collections.abc import Sequence
 from pathlib import Path
 
 # glibc mallopt parameters (malloc.h).
-_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -2, -3, -8
 MMAP_THRESHOLD_BYTES = 32 * 2**20
 """glibc's largest mmap threshold on 64-bit systems (``DEFAULT_MMAP_THRESHOLD_MAX``)."""
+MALLOC_ARENAS = 2
+"""The most heaps (glibc arenas) `tune_allocator` lets the threads of a process allocate from
+(glibc's default: eight per core)."""
 _LOCK = threading.Lock()
 _TUNED: bool | None = None
 
 
 def tune_allocator() -> bool:
     """Make glibc's ``malloc`` keep the memory of freed large arrays in the process heap: blocks up
-    to 32 MB come from the heap instead of fresh ``mmap`` regions, and the heap is not trimmed.
+    to 32 MB come from the heap instead of fresh ``mmap`` regions, the heap is not trimmed, and the
+    threads share at most `MALLOC_ARENAS` heaps.
 
     Why: a sample's ground truth allocates and frees hundreds of image-sized buffers; served by
     fresh mappings, every one of them page-faults and is zeroed by the kernel again, and kept in
     the heap they are reused. The cost: freed memory is not returned to the system until the
-    process ends, so a process peaks higher. The dataset builder applies it in the processes that
+    process ends, so a process peaks higher. Each heap keeps its own high-water mark, so the
+    threads that decode, compute and write a sample share a few heaps rather than each growing one
+    (glibc's default); threads that allocated before the call keep the heap they have. The dataset builder applies it in the processes that
     build samples unless ``BuildOptions(tune_allocator=False)``; it suits any script that computes
     ground truth in a loop (``scripts/bench_groundtruth.py`` applies it).
     Measured effect: ``docs/performance.md``.
@@ -56,6 +62,7 @@ def _apply() -> bool:
     ok = mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
     ok &= mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
     ok &= mallopt(_M_TOP_PAD, 64 * 2**20)
+    ok &= mallopt(_M_ARENA_MAX, MALLOC_ARENAS)
     return bool(ok)
 
 

@@ -4,6 +4,7 @@ npz, the depth colour map."""
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -262,6 +263,48 @@ def test_tune_allocator_is_idempotent_and_optional():
     first = tune_allocator()
     assert isinstance(first, bool) and tune_allocator() is first  # glibc here: True; elsewhere a no-op
     assert "tune_allocator" not in BuildOptions(tune_allocator=False).to_dict()  # it never changes bytes
+
+
+_HEAPS_SCRIPT = """
+import ctypes, os, sys, tempfile, threading
+import numpy as np
+tune = sys.argv[1] == "tune"
+if tune:
+    from jaxfish.dataset import tune_allocator
+    assert tune_allocator()
+barrier = threading.Barrier(8)
+def work():
+    a = np.ones(1 << 20, np.uint8)  # each thread allocates while the others hold theirs
+    barrier.wait()
+    del a
+threads = [threading.Thread(target=work) for _ in range(8)]
+for t in threads: t.start()
+for t in threads: t.join()
+libc = ctypes.CDLL("libc.so.6")
+libc.fopen.restype = ctypes.c_void_p
+libc.fopen.argtypes, libc.malloc_info.argtypes, libc.fclose.argtypes = [ctypes.c_char_p] * 2, [ctypes.c_int, ctypes.c_void_p], [ctypes.c_void_p]
+path = os.path.join(tempfile.mkdtemp(), "info.xml")
+fp = libc.fopen(path.encode(), b"w")
+libc.malloc_info(0, fp)
+libc.fclose(fp)
+print(open(path).read().count("<heap nr="))
+"""
+
+
+def test_tuned_threads_share_at_most_malloc_arenas_heaps():
+    """`tune_allocator` caps glibc's heaps at `MALLOC_ARENAS` for threads that allocate after it
+    (glibc's default gives each of eight concurrent threads a heap of its own)."""
+    import subprocess
+    import sys
+
+    from jaxfish.dataset._runtime import MALLOC_ARENAS
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    heaps = {mode: int(subprocess.run([sys.executable, "-c", _HEAPS_SCRIPT, mode], capture_output=True, text=True,
+                                      check=True, env=env).stdout.strip().splitlines()[-1])
+             for mode in ("tune", "default")}
+    assert heaps["default"] > MALLOC_ARENAS  # the measurement sees the threads' heaps
+    assert 1 <= heaps["tune"] <= MALLOC_ARENAS
 
 
 @pytest.mark.parametrize("tune, env, applied", [(None, False, True), (False, False, False), (False, True, True)])
