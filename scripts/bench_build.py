@@ -398,10 +398,11 @@ def _whole_build(capture: str, out: str, workers: int, cache: str, processes: bo
     wall = time.perf_counter() - start
     assert report.ok, report.summary()
     half = len(stamps) // 2 - 1
-    return {"wall_s": wall, "first_s": stamps[0] - start, "after_rate": _rate(stamps), "samples": len(report.built),
+    own = workers == 0 or not local_processes(workers, processes)  # every sample built in this process
+    return {"peak_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20 if own else None, "wall_s": wall, "first_s": stamps[0] - start, "after_rate": _rate(stamps), "samples": len(report.built),
             "half_rate": _rate(stamps[half:] if len(stamps) >= 4 else []),
             "half_cpu_s": ((cpu[-1] - cpu[half]) / (len(cpu) - 1 - half)
-                           if (workers == 0 or not local_processes(workers, processes)) and len(cpu) >= 4 else None)}
+                           if own and len(cpu) >= 4 else None)}
 
 
 def _rate(stamps: list[float]) -> float:
@@ -430,7 +431,7 @@ def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list
     the one the cold build filled (``warm``)."""
     print(f"whole builds of {len(_frames(capture))} samples, each in a fresh process (load {os.getloadavg()[0]:.1f}):")
     print(f"  {'build':22s} {'cache':5s} {'wall s':>7s} {'first s':>8s} {'samples/s after 1st':>20s} "
-          f"{'second half':>12s} {'CPU-s per sample, second half (this process)':>45s}")
+          f"{'second half':>12s} {'CPU-s per sample, second half (this process)':>45s} {'peak GiB (this process)':>24s}")
     for n, kind in [(0, "serial"), *[(n, k) for n in workers for k in kinds]]:
         name = "serial" if n == 0 else f"--workers {n} --{kind}"
         folder = scratch / f"xla-{n}-{kind}"
@@ -441,8 +442,9 @@ def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list
                                           None if n == 0 else kind == "processes")
             shutil.rmtree(out, ignore_errors=True)
             cpu = "" if r["half_cpu_s"] is None else f"{r['half_cpu_s']:.2f}"
+            peak = "" if r["peak_gb"] is None else f"{r['peak_gb']:.2f}"
             print(f"  {name:22s} {cache:5s} {r['wall_s']:7.1f} {r['first_s']:8.1f} {r['after_rate']:20.2f} "
-                  f"{r['half_rate']:12.2f} {cpu:>45s}", flush=True)
+                  f"{r['half_rate']:12.2f} {cpu:>45s} {peak:>24s}", flush=True)
 
 
 # ------------------------------------------------------------------ a long serial build, sample by sample
