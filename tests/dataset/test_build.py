@@ -299,7 +299,8 @@ def test_consecutive_frames_reuse_decoded_images_with_the_same_bytes(small_captu
 
 
 def _worker_environ():
-    return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS", "XLA_PYTHON_CLIENT_PREALLOCATE")}
+    return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "MALLOC_ARENA_MAX", "OMP_NUM_THREADS",
+                                       "XLA_PYTHON_CLIENT_PREALLOCATE")}
 
 
 def _affinity() -> tuple[int, ...]:
@@ -310,8 +311,10 @@ def test_local_cluster_workers_keep_glibcs_dynamic_mmap_threshold_and_get_their_
     from distributed import Client
 
     from jaxfish.dataset import DatasetError, core_shares, local_cluster, share_cores
+    from jaxfish.dataset._runtime import MALLOC_ARENAS
 
     monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
+    monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
     with pytest.raises(DatasetError, match="at least 1"):
         local_cluster(0)
     with local_cluster(2) as cluster, Client(cluster) as client:
@@ -324,8 +327,19 @@ def test_local_cluster_workers_keep_glibcs_dynamic_mmap_threshold_and_get_their_
             assert pinned == {}
     for env in envs:
         assert env["MALLOC_TRIM_THRESHOLD_"] is None  # dask's nannies would set 65536
+        assert env["MALLOC_ARENA_MAX"] == str(MALLOC_ARENAS)  # capped from the start, as tune_allocator caps
         assert env["OMP_NUM_THREADS"] == "1"  # the rest of dask's worker environment is kept
         assert env["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"  # the workers can share one GPU
+
+
+def test_local_cluster_workers_keep_a_heap_limit_the_environment_sets(monkeypatch):
+    from distributed import Client
+
+    from jaxfish.dataset import local_cluster
+
+    monkeypatch.setenv("MALLOC_ARENA_MAX", "5")
+    with local_cluster(1) as cluster, Client(cluster) as client:
+        assert [env["MALLOC_ARENA_MAX"] for env in client.run(_worker_environ).values()] == ["5"]
 
 
 def test_processes_sharing_a_gpu_allocate_as_they_need_unless_the_environment_says(monkeypatch):
