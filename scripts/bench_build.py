@@ -382,7 +382,8 @@ def report_contents(captures: dict[str, Path], scratch: Path, repeat: int) -> No
 def _whole_build(capture: str, out: str, workers: int, cache: str, processes: bool | None = None) -> dict:
     """One whole build in this (fresh) process: ``workers`` 0 = serial, else that many local
     workers (``processes``: `build_dataset`'s); ``cache`` a folder or "" (no compile cache). Returns the build's wall time (compilation, cluster start included) and
-    its rate after the first sample (compilation excluded)."""
+    its rate after the first sample (compilation excluded), and for a build in this process its
+    CPU time per sample over the second half and its peak resident memory."""
     from jaxfish.dataset import BuildOptions, build_dataset, local_processes
 
     stamps: list[float] = []
@@ -399,7 +400,9 @@ def _whole_build(capture: str, out: str, workers: int, cache: str, processes: bo
     assert report.ok, report.summary()
     half = len(stamps) // 2 - 1
     own = workers == 0 or not local_processes(workers, processes)  # every sample built in this process
-    return {"peak_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20 if own else None, "wall_s": wall, "first_s": stamps[0] - start, "after_rate": _rate(stamps), "samples": len(report.built),
+    peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20 if own else None  # kB -> GiB
+    return {"peak_gb": peak_gb, "wall_s": wall, "first_s": stamps[0] - start, "after_rate": _rate(stamps),
+            "samples": len(report.built),
             "half_rate": _rate(stamps[half:] if len(stamps) >= 4 else []),
             "half_cpu_s": ((cpu[-1] - cpu[half]) / (len(cpu) - 1 - half)
                            if own and len(cpu) >= 4 else None)}

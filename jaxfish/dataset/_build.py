@@ -370,6 +370,7 @@ def _prepare_process(options: BuildOptions) -> None:
 
 
 def _tune_allocator(options: BuildOptions) -> None:
+    """`tune_allocator` unless ``options`` say not to (a nanny's trim threshold overrides them)."""
     if options.tune_allocator or "MALLOC_TRIM_THRESHOLD_" in os.environ:
         # In the process that builds (a dask worker or the serial build's). A fixed trim threshold
         # in the environment (dask's nannies set one) has already turned glibc's dynamic mmap
@@ -978,8 +979,8 @@ def local_cluster(workers: int, *, processes: bool = True):
     mapping, which multiplies a sample's CPU time (docs/performance.md). These workers keep glibc's
     defaults, except that their threads share at most `MALLOC_ARENAS` heaps from the start
     (``MALLOC_ARENA_MAX``, unless this process's environment sets it), as `tune_allocator` caps
-    them in a building process. No dashboard; the scheduler's HTTP routes (health, metrics) take a free port, not
-    dask's 8787 (another cluster on this machine would make dask warn on stderr).
+    them in a building process. No dashboard; the scheduler's HTTP routes (health, metrics) take
+    a free port, not dask's 8787 (another cluster on this machine would make dask warn on stderr).
 
     Process workers end with the process that calls this (its nannies run in it), however it ends,
     ``kill -9`` included, and ignore SIGINT and SIGTERM (`jaxfish.dataset._runtime.dask_setup`, a

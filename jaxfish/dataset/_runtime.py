@@ -37,9 +37,10 @@ def tune_allocator() -> bool:
     the heap they are reused. The cost: freed memory is not returned to the system until the
     process ends, so a process peaks higher. Each heap keeps its own high-water mark, so the
     threads that decode, compute and write a sample share a few heaps rather than each growing one
-    (glibc's default); threads that allocated before the call keep the heap they have. The dataset builder applies it in the processes that
-    build samples unless ``BuildOptions(tune_allocator=False)``; it suits any script that computes
-    ground truth in a loop (``scripts/bench_groundtruth.py`` applies it).
+    (glibc's default); threads that allocated before the call keep the heap they have. The
+    dataset builder applies it in the processes that build samples unless
+    ``BuildOptions(tune_allocator=False)``; it suits any script that computes ground truth in a
+    loop (``scripts/bench_groundtruth.py`` applies it).
     Measured effect: ``docs/performance.md``.
 
     Idempotent and process-wide. Returns True when applied, False where the C library is not glibc
