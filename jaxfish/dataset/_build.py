@@ -47,8 +47,8 @@ from ._options import sample_span
 from ._runtime import (
     BUILD_PID_ENV,
     CORE_SHARES_ENV,
-    MALLOC_ARENAS,
     accelerator_sharing_env,
+    allocator_env,
     core_shares,
     encode_shares,
     openexr_in_calling_thread,
@@ -978,8 +978,7 @@ def local_cluster(workers: int, *, processes: bool = True):
     glibc's dynamic mmap threshold: every image-sized buffer then becomes a fresh, page-faulting
     mapping, which multiplies a sample's CPU time (docs/performance.md). These workers keep glibc's
     defaults, except that their threads share at most `MALLOC_ARENAS` heaps from the start
-    (``MALLOC_ARENA_MAX``, unless this process's environment sets it), as `tune_allocator` caps
-    them in a building process. No dashboard; the scheduler's HTTP routes (health, metrics) take
+    (`jaxfish.dataset._runtime.allocator_env`). No dashboard; the scheduler's HTTP routes (health, metrics) take
     a free port, not dask's 8787 (another cluster on this machine would make dask warn on stderr).
 
     Process workers end with the process that calls this (its nannies run in it), however it ends,
@@ -1002,9 +1001,7 @@ def local_cluster(workers: int, *, processes: bool = True):
     kwargs: dict[str, Any] = {}
     if processes:  # the nannies run in this process: their workers end with it (`_runtime.dask_setup`)
         # Set in the worker only, over any inherited value; the workers share this process's GPU.
-        kwargs["env"] = {BUILD_PID_ENV: str(os.getpid()), **accelerator_sharing_env()}
-        if "MALLOC_ARENA_MAX" not in os.environ:  # glibc reads it as the worker starts, before any thread
-            kwargs["env"]["MALLOC_ARENA_MAX"] = str(MALLOC_ARENAS)
+        kwargs["env"] = {BUILD_PID_ENV: str(os.getpid()), **accelerator_sharing_env(), **allocator_env()}
         cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
         if cores and workers > 1:  # each worker pins itself to its share as it starts
             kwargs["env"][CORE_SHARES_ENV] = encode_shares(core_shares(workers, cores))

@@ -120,6 +120,19 @@ PREALLOCATE_ENV = "XLA_PYTHON_CLIENT_PREALLOCATE"
 when its GPU backend starts; ``false``, it allocates as it needs."""
 
 
+ARENA_MAX_ENV = "MALLOC_ARENA_MAX"
+"""glibc's environment variable for the most heaps a process's threads allocate from; read as the
+process starts, before any thread has a heap."""
+
+
+def allocator_env() -> dict[str, str]:
+    """The environment `local_cluster`'s process workers get so that their threads share at most
+    `MALLOC_ARENAS` heaps from the start, as `tune_allocator` caps them in a building process
+    (which tunes only after its own threads have started): ``{ARENA_MAX_ENV: "2"}``, or nothing
+    where this process's environment sets `ARENA_MAX_ENV` itself (the workers inherit that choice)."""
+    return {} if ARENA_MAX_ENV in os.environ else {ARENA_MAX_ENV: str(MALLOC_ARENAS)}
+
+
 def accelerator_sharing_env() -> dict[str, str]:
     """The environment `local_cluster`'s process workers get so that they, and the process that
     started them, can share one GPU: ``{PREALLOCATE_ENV: "false"}`` (each allocates GPU memory as it

@@ -311,10 +311,10 @@ def test_local_cluster_workers_keep_glibcs_dynamic_mmap_threshold_and_get_their_
     from distributed import Client
 
     from jaxfish.dataset import DatasetError, core_shares, local_cluster, share_cores
-    from jaxfish.dataset._runtime import MALLOC_ARENAS
+    from jaxfish.dataset._runtime import ARENA_MAX_ENV, MALLOC_ARENAS
 
     monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
-    monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
+    monkeypatch.delenv(ARENA_MAX_ENV, raising=False)
     with pytest.raises(DatasetError, match="at least 1"):
         local_cluster(0)
     with local_cluster(2) as cluster, Client(cluster) as client:
