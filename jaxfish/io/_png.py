@@ -292,11 +292,24 @@ def png_text(data: bytes, where: str = "PNG") -> dict[str, str]:
     return parse_png(data, where, pixels=False).text
 
 
+UNFILTER_BLOCK_ROWS = 32
+"""Rows `_unfilter_up` sums at once when every row is filtered Up: the running sums of all blocks
+of this many rows advance together, one NumPy call per row of a block, and then each block adds
+the last row of the block before it, one call per block (about 70 calls for a 1152-row image
+instead of one per row)."""
+
+
 def _unfilter_up(filtered: np.ndarray) -> np.ndarray:
-    """Inverse of rows filtered None (0) or Up (2): a running sum of rows, modulo 256."""
+    """Inverse of rows filtered None (0) or Up (2): a running sum of rows, modulo 256.
+    ``filtered``: ``(H, 1 + row bytes)`` uint8, each row's filter byte first; returns the
+    ``(H, row bytes)`` unfiltered rows."""
     d = filtered[:, 1:]
     out = np.empty_like(d)
-    out[0] = d[0]  # Up on the first row adds a zero row
+    if d.shape[0] == 0:
+        return out
+    if np.all(filtered[1:, 0] == FILTER_UP):  # Up on the first row adds a zero row: a None row alike
+        return _running_rows(d, out)
+    out[0] = d[0]
     add, prev = np.add, out[0]
     # Iterating yields the row views with less overhead per row than indexing.
     for mode, row, unfiltered in zip(filtered[1:, 0].tolist(), d[1:], out[1:], strict=True):
@@ -305,6 +318,26 @@ def _unfilter_up(filtered: np.ndarray) -> np.ndarray:
         else:
             unfiltered[...] = row
         prev = unfiltered
+    return out
+
+
+def _running_rows(d: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``out[i] = d[0] + ... + d[i]`` (uint8, modulo 256) for ``d`` of shape ``(H, N)``, in blocks
+    of `UNFILTER_BLOCK_ROWS` rows (``out`` returned)."""
+    k = UNFILTER_BLOCK_ROWS
+    blocks = d.shape[0] // k
+    whole = blocks * k
+    if blocks:
+        src, dst = d[:whole].reshape(blocks, k, -1), out[:whole].reshape(blocks, k, -1)
+        dst[:, 0] = src[:, 0]
+        for j in range(1, k):  # the running sum inside every block at once
+            np.add(dst[:, j - 1], src[:, j], out=dst[:, j])
+        for b in range(1, blocks):  # then each block continues the one before it
+            np.add(dst[b], dst[b - 1, -1], out=dst[b])
+    else:
+        out[0] = d[0]
+    for i in range(max(whole, 1), d.shape[0]):  # the rows after the last whole block
+        np.add(out[i - 1], d[i], out=out[i])
     return out
 
 

@@ -291,6 +291,35 @@ def test_reads_mixed_none_up_rows_by_the_fast_path(tmp_path, monkeypatch):
     assert np.array_equal(read_image(path), a) and np.array_equal(read_oiio(path), a)
 
 
+@pytest.mark.parametrize("height", [1, 2, _png.UNFILTER_BLOCK_ROWS - 1, _png.UNFILTER_BLOCK_ROWS,
+                                    _png.UNFILTER_BLOCK_ROWS + 1, 3 * _png.UNFILTER_BLOCK_ROWS + 5])
+@pytest.mark.parametrize("kind", ["rgb8", "gray16"])
+def test_up_rows_read_back_at_heights_around_the_unfilter_block(tmp_path, monkeypatch, height, kind):
+    a = pixels(kind, (height, 7), "random", seed=height)
+    path = tmp_path / "up.png"
+    write_image(path, a)
+    assert filters_of(path) == {_png.FILTER_UP}
+    monkeypatch.setattr(_png, "_pyspng", None)  # the fast path alone must read it
+    assert np.array_equal(hwc(read_image(path)), hwc(a)) and np.array_equal(read_oiio(path), hwc(a))
+
+
+@pytest.mark.parametrize("height", [1, _png.UNFILTER_BLOCK_ROWS, 2 * _png.UNFILTER_BLOCK_ROWS + 3])
+@pytest.mark.parametrize("modes", ["up", "none first", "mixed"])
+def test_unfilter_is_a_running_sum_of_rows_restarted_at_none_rows(height, modes):
+    rng = np.random.default_rng(height)
+    filtered = rng.integers(0, 256, (height, 1 + 11), dtype=np.uint8)
+    filtered[:, 0] = _png.FILTER_UP
+    if modes == "none first":
+        filtered[0, 0] = 0
+    elif modes == "mixed":
+        filtered[rng.random(height) < 0.3, 0] = 0
+    expected, total = np.empty((height, 11), np.uint8), np.zeros(11, np.int64)
+    for i, row in enumerate(filtered):  # the reference: one row at a time, in wide integers
+        total = (total if row[0] == _png.FILTER_UP else 0) + row[1:].astype(np.int64)
+        expected[i] = total % 256
+    assert np.array_equal(_png._unfilter_up(filtered), expected)
+
+
 def _inflates(monkeypatch) -> list[str]:
     """Record which inflate `decode_png` runs: ``"libdeflate"`` when libdeflate returns the rows,
     ``"fallback"`` when ISA-L / zlib inflates them."""
