@@ -16,7 +16,9 @@ from ._constants import bev_constants as bev_constants
 from ._constants import camera_constants as camera_constants
 from ._constants import compiled_pixel_rays as compiled_pixel_rays
 from ._constants import rig_constants as rig_constants
+from ._events import FaceEventTable as FaceEventTable
 from ._events import camera_events as camera_events
+from ._events import face_event_table as face_event_table
 from ._events import map_face_events as map_face_events
 from ._frame import BOX_SLOT_QUANTUM as BOX_SLOT_QUANTUM
 from ._frame import TAG_TABLES as TAG_TABLES

@@ -13,9 +13,10 @@ from jaxtyping import Array, Bool, Float
 
 from ..calibration import Calibration
 from ..cameras import AbstractCamera, Orthographic
-from ..groundtruth import EventMap, event_map_from_lut, pixel_rays
+from ..groundtruth import event_map_from_lut, pixel_rays
 from ..reprojection import CubeRig, Lut, compiled_build_lut
 from ..transforms import Pose
+from ._events import FaceEventTable, face_event_table
 
 
 class CameraConstants(eqx.Module):
@@ -24,7 +25,8 @@ class CameraConstants(eqx.Module):
     - `name`: the camera's name; `camera`: its lens model; `camera_to_vehicle`: its mount;
     - `lut`: the cube -> fisheye `Lut` at the rig's face size and faces;
     - `rays`: its `jaxfish.groundtruth.pixel_rays` ``((H, W, 3) unit rays, (H, W) valid)``;
-    - `event_map`: the inverse LUT mapping face DVS events to fisheye pixels.
+    - `event_table`: the inverse LUT mapping face DVS events to fisheye pixels, as the host
+      `FaceEventTable` of its `jaxfish.groundtruth.EventMap` (`camera_events` maps with it).
     """
 
     name: str = eqx.field(static=True)
@@ -32,7 +34,7 @@ class CameraConstants(eqx.Module):
     camera_to_vehicle: Pose
     lut: Lut
     rays: tuple[Float[Array, "H W 3"], Bool[Array, "H W"]]
-    event_map: EventMap
+    event_table: FaceEventTable
 
 
 class BevConstants(eqx.Module):
@@ -88,7 +90,10 @@ def camera_constants(name: str, calibration: Calibration, *, faces: Sequence[str
     lut = compiled_build_lut(CubeRig(int(face_size), faces=tuple(faces), dtype=jnp.float32), cam)
     if not np.any(np.asarray(lut.valid)):
         raise EmptyCameraError(name)
-    return CameraConstants(name, cam, calib.camera_to_vehicle, lut, compiled_pixel_rays(cam), event_map_from_lut(lut))
+    # The dense event map lives only while its compact table is made (a quarter of its bytes at
+    # a fan-out of 2, kept for every build).
+    table = face_event_table(event_map_from_lut(lut))
+    return CameraConstants(name, cam, calib.camera_to_vehicle, lut, compiled_pixel_rays(cam), table)
 
 
 def bev_constants(camera: Orthographic, camera_to_vehicle: Pose) -> BevConstants:

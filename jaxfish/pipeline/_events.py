@@ -6,9 +6,10 @@ from __future__ import annotations
 import threading
 import weakref
 from collections.abc import Sequence
-from typing import NamedTuple
 
+import equinox as eqx
 import numpy as np
+from jaxtyping import Int
 
 from .._constants import DVS_EVENT_DTYPE
 from ..groundtruth import EventMap
@@ -46,40 +47,61 @@ def _by_time(flat: np.ndarray, t: np.ndarray, pol: np.ndarray, width: int) -> np
     return out
 
 
-class _HostMap(NamedTuple):
-    """An `EventMap` on the host for `camera_events` and `map_face_events`: ``first`` ``(F * S * S,)`` int32, per face
-    pixel its only fisheye target, -1 when it feeds none, or ``-2 - j`` when it feeds several:
-    then row ``j`` of ``many`` holds its targets (``many_count[j]`` of them, -1 after)."""
+class FaceEventTable(eqx.Module):
+    """A camera's `jaxfish.groundtruth.EventMap` on the host, compact: what `camera_events` maps
+    face DVS events with (`face_event_table`). Every array is NumPy and read-only.
 
-    first: np.ndarray
-    many: np.ndarray
-    many_count: np.ndarray
+    - `first` ``(F * S * S,)`` int32: per face pixel (flat ``(face * S + y) * S + x``) the fisheye
+      pixel it feeds (flat ``v * width + u``), -1 when it feeds none, or ``-2 - j`` when it feeds
+      several: then row ``j`` of `many` holds them;
+    - `many` ``(K, M)`` int32: the fisheye pixels of the ``K`` face pixels that feed several, in the
+      map's slot order, -1 after the last; `many_count` ``(K,)``: how many of them;
+    - static: `width` of the fisheye, `face_size` ``S``.
+
+    It holds 4 bytes per face pixel where the `EventMap` holds ``4 (M + 1)`` (the dense targets
+    and the fan-out): a rig's constants keep this table, not the map."""
+
+    first: Int[np.ndarray, " FSS"]
+    many: Int[np.ndarray, "K M"]
+    many_count: Int[np.ndarray, " K"]
+    width: int = eqx.field(static=True)
+    face_size: int = eqx.field(static=True)
 
 
-def _host_map(targets: np.ndarray, fanout: np.ndarray) -> _HostMap:
-    """The `_HostMap` of an event map's ``targets`` ``(F * S * S, M)`` (a pixel's targets first, -1
-    after) and ``fanout`` (at most ``M`` of them are used)."""
+def _host_map(targets: np.ndarray, fanout: np.ndarray, width: int, face_size: int) -> FaceEventTable:
+    """The `FaceEventTable` of an event map's ``targets`` ``(F * S * S, M)`` (a pixel's targets
+    first, -1 after) and ``fanout`` (at most ``M`` of them are used)."""
     count = np.minimum(np.asarray(fanout), targets.shape[1])
     first = targets[:, 0].astype(np.int32)
     first[count == 0] = -1
     several = np.flatnonzero(count > 1)
     first[several] = -2 - np.arange(several.size, dtype=np.int32)
-    return _HostMap(first, np.ascontiguousarray(targets[several]), count[several])
+    many, many_count = np.ascontiguousarray(targets[several], np.int32), count[several].astype(np.int32)
+    for a in (first, many, many_count):
+        a.setflags(write=False)
+    return FaceEventTable(first, many, many_count, int(width), int(face_size))
 
 
-_HOST_MAPS: dict[int, tuple[weakref.ref, _HostMap]] = {}
+def face_event_table(event_map: EventMap) -> FaceEventTable:
+    """The `FaceEventTable` of ``event_map`` (a new table: `camera_events` of the map itself keeps
+    one per map instead)."""
+    return _host_map(np.asarray(event_map.targets), np.asarray(event_map.fanout), event_map.width,
+                     event_map.face_size)
+
+
+_HOST_MAPS: dict[int, tuple[weakref.ref, FaceEventTable]] = {}
 _HOST_MAPS_LOCK = threading.Lock()
 
 
-def _host_map_of(event_map: EventMap) -> _HostMap:
-    """``event_map``'s `_HostMap`, built once and kept while its ``targets`` array lives."""
+def _host_map_of(event_map: EventMap) -> FaceEventTable:
+    """``event_map``'s `FaceEventTable`, built once and kept while its ``targets`` array lives."""
     targets = event_map.targets
     key = id(targets)
     with _HOST_MAPS_LOCK:
         kept = _HOST_MAPS.get(key)
         if kept is not None and kept[0]() is targets:
             return kept[1]
-    table = _host_map(np.asarray(targets), np.asarray(event_map.fanout))
+    table = face_event_table(event_map)
     with _HOST_MAPS_LOCK:
         _HOST_MAPS[key] = (weakref.ref(targets), table)
     weakref.finalize(targets, _forget_host_map, key, weakref.ref(targets))
@@ -93,7 +115,7 @@ def _forget_host_map(key: int, ref: weakref.ref) -> None:
             del _HOST_MAPS[key]
 
 
-def _face_copies(table: _HostMap, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _face_copies(table: FaceEventTable, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The events at face pixels ``src`` (indices into ``table.first``) once per fisheye pixel they
     feed, a pixel's targets in slot order: ``(event index, fisheye flat index)``."""
     target = table.first.take(src)  # ``src`` of NumPy's index type: taken without an index conversion
@@ -122,7 +144,7 @@ def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.nd
     ``x``, ``y`` (face pixels), ``t`` (ns) and ``pol``. Events outside the faces feed no pixel.
     Returns the fisheye events in CARLA's DVS dtype (t unchanged, ns)."""
     tg = np.asarray(targets)
-    table = _host_map(tg, np.sum(tg >= 0, axis=1) if fanout is None else fanout)
+    table = _host_map(tg, np.sum(tg >= 0, axis=1) if fanout is None else fanout, int(width), int(face_size))
     s = int(face_size)
     f, xi, yi = (np.asarray(a, np.int64) for a in (face, x, y))
     inb = (f >= 0) & (xi >= 0) & (xi < s) & (yi >= 0) & (yi < s)
@@ -134,15 +156,15 @@ def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.nd
     return _by_time(flat, np.asarray(t, np.int64)[ev_idx], np.asarray(pol, bool)[ev_idx], int(width))
 
 
-def camera_events(events: Sequence[np.ndarray], event_map: EventMap) -> np.ndarray:
+def camera_events(events: Sequence[np.ndarray], event_map: EventMap | FaceEventTable) -> np.ndarray:
     """A camera's face events (one CARLA-dtype array per face, in the event map's face order)
-    mapped to its fisheye through ``event_map``: CARLA-dtype events, t in ns, time order; the same
-    events as `map_face_events` of the concatenated faces. Each face is mapped on its own: only
-    the events that feed a fisheye pixel are gathered and sorted, through a host copy of the map
-    (each face pixel's first target, its other targets apart) made once per ``event_map``."""
-    table = _host_map_of(event_map)
+    mapped to its fisheye through ``event_map`` (an `EventMap`, or its `FaceEventTable`: the same
+    events): CARLA-dtype events, t in ns, time order; the same events as `map_face_events` of the
+    concatenated faces. Each face is mapped on its own: only the events that feed a fisheye pixel
+    are gathered and sorted, through the map's `FaceEventTable` (made once per `EventMap`)."""
+    table = event_map if isinstance(event_map, FaceEventTable) else _host_map_of(event_map)
     n = table.first.shape[0]
-    s = int(event_map.face_size)
+    s = int(table.face_size)
     flats, times, pols = [], [], []
     for i, ev in enumerate(events):
         if ev.shape[0] == 0:
@@ -166,4 +188,4 @@ def camera_events(events: Sequence[np.ndarray], event_map: EventMap) -> np.ndarr
         pols.append(ev["pol"][ev_idx].astype(bool, copy=False))
     if not flats:
         return np.empty(0, DVS_EVENT_DTYPE)
-    return _by_time(np.concatenate(flats), np.concatenate(times), np.concatenate(pols), int(event_map.width))
+    return _by_time(np.concatenate(flats), np.concatenate(times), np.concatenate(pols), int(table.width))

@@ -210,7 +210,7 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
         for k, cf, truth in zip(cams, frames[0].camera_frames, rows[0], strict=True):
             _LAST_IMAGES.keep(k.name, k.lut, cf.faces, truth.images, (truth.instances, truth.semantic),
                               _LabelInputs(k, per_sample[1], per_sample[3], frames[0].carla_tags, options))
-    return [[_camera_truth(k.name, k.camera, k.rays, truth, camera_events(cf.events, k.event_map), options.backward_flow)
+    return [[_camera_truth(k.name, k.camera, k.rays, truth, camera_events(cf.events, k.event_table), options.backward_flow)
              for k, cf, truth in zip(cams, f.camera_frames, row, strict=True)]
             for f, row in zip(frames, rows, strict=True)]
 

@@ -13,7 +13,14 @@ import pytest
 from jaxfish._constants import DVS_EVENT_DTYPE
 from jaxfish.groundtruth import EventMap
 from jaxfish.io import write_npz
-from jaxfish.pipeline import camera_events, depth_to_color, events_color, map_face_events
+from jaxfish.pipeline import (
+    FaceEventTable,
+    camera_events,
+    depth_to_color,
+    events_color,
+    face_event_table,
+    map_face_events,
+)
 
 
 def test_numpy_event_mapping_follows_the_rule():
@@ -79,11 +86,41 @@ def test_camera_events_face_by_face_equal_the_mapping_of_all_faces():
         ev["t"], ev["pol"] = np.sort(rng.integers(0, 30, k)), rng.random(k) < 0.5
         per_face.append(ev)
     got = camera_events(per_face, emap)
+    assert camera_events(per_face, face_event_table(emap)).tobytes() == got.tobytes()  # the map's table: the same events
     cat = np.concatenate(per_face)
     face = np.concatenate([np.full(len(ev), i) for i, ev in enumerate(per_face)])
     want = map_face_events(targets, width, size, face, cat["x"], cat["y"], cat["t"], cat["pol"], fanout=fan)
     assert got.dtype == DVS_EVENT_DTYPE and got.tobytes() == want.tobytes() and len(got) > 0
     assert camera_events([np.zeros(0, DVS_EVENT_DTYPE)] * 3, emap).shape == (0,)
+
+
+def test_face_event_table_is_the_event_map_compacted():
+    """Per face pixel its only target, -1 for none, ``-2 - j`` pointing at row ``j`` of the pixels
+    that feed several (their targets in slot order and their count); read-only, and smaller than
+    the dense map when few pixels feed several."""
+    targets = np.asarray([[3, 5], [-1, -1], [4, -1], [0, 1], [7, -1], [2, 6]], np.int32)  # six faces of one pixel
+    emap = EventMap(targets=targets, fanout=np.asarray([2, 0, 1, 2, 1, 1], np.int32), width=4, height=2, face_size=1,
+                    num_faces=6, max_fanout=2)
+    table = face_event_table(emap)
+    assert table.first.tolist() == [-2, -1, 4, -3, 7, 2]  # the last pixel's fan-out of 1 keeps its first target only
+    assert table.many.tolist() == [[3, 5], [0, 1]] and table.many_count.tolist() == [2, 2]
+    assert (table.width, table.face_size) == (4, 1)
+    assert not any(a.flags.writeable for a in (table.first, table.many, table.many_count))
+
+
+def test_rig_constants_keep_the_compact_table_not_the_dense_map():
+    from jaxfish import default_rig
+    from jaxfish.groundtruth import event_map_from_lut
+    from jaxfish.pipeline import camera_constants
+
+    calibration = default_rig(width=160, height=120)["FV"]
+    k = camera_constants("FV", calibration, faces=("front", "left", "right", "top", "bottom"), face_size=96)
+    emap = event_map_from_lut(k.lut)
+    table = k.event_table
+    assert isinstance(table, FaceEventTable) and not hasattr(k, "event_map")
+    assert table.first.tobytes() == face_event_table(emap).first.tobytes()
+    dense = np.asarray(emap.targets).nbytes + np.asarray(emap.fanout).nbytes
+    assert table.first.nbytes + table.many.nbytes + table.many_count.nbytes < dense / 2
 
 
 def test_camera_events_keep_one_host_map_per_event_map_while_it_lives():

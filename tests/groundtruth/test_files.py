@@ -20,7 +20,14 @@ from jaxfish.io import (
     write_capture_header,
     write_frame,
 )
-from jaxfish.pipeline import CameraConstants, GroundTruthOptions, RigConstants, compiled_pixel_rays, sample_truth
+from jaxfish.pipeline import (
+    CameraConstants,
+    GroundTruthOptions,
+    RigConstants,
+    compiled_pixel_rays,
+    face_event_table,
+    sample_truth,
+)
 from jaxfish.scene import RADAR_DTYPE, SEMANTIC_LIDAR_DTYPE, CameraCapture, CameraImages, CaptureConfig, sensor_mounts
 
 
@@ -45,8 +52,9 @@ def capture(sample, tmp_path_factory):
     source = CaptureSource(root)
     calib = source.rig()["FV"].astype(jnp.float32)
     cam = calib.camera.astype(jnp.float32)
-    constants = RigConstants((CameraConstants("FV", cam, calib.camera_to_vehicle, sample.lut, compiled_pixel_rays(cam),
-                                              gt.event_map_from_lut(sample.lut)),), None, source.faces, source.face_size)
+    table = face_event_table(gt.event_map_from_lut(sample.lut))
+    constants = RigConstants((CameraConstants("FV", cam, calib.camera_to_vehicle, sample.lut, compiled_pixel_rays(cam), table),),
+                             None, source.faces, source.face_size)
     frame = source.read(sample.frame.frame, bev=False)
     return frame, sample_truth(frame, constants, GroundTruthOptions(bev=False)), dvs
 
