@@ -43,9 +43,12 @@ decoded first, untimed), and prints each sample's CPU seconds (user and system, 
 wall time, the programs it traced (a program variant met for the first time) and the system's free
 memory after it; then the median over the samples past the first three that traced no program:
 what each sample of a long build costs. ``--sequence capture`` or ``--sequence memory`` runs one of
-the two.
+the two. With ``--one-frame`` the frames are built every other one (0, 2, 4, ..., then 1, 3, 5,
+...): no sample follows its predecessor, so each is a one-frame sample (its t-1 images decoded,
+resampled and labelled), measured in a long build's steady state like the others.
 
     uv run python scripts/bench_build.py --content textured --sequence --textured-capture CAP  # e.g. 20 frames
+    uv run python scripts/bench_build.py --content textured --sequence --one-frame --textured-capture CAP
 
 Goals: <= 2.0 CPU-s per sample from the textured capture (>= 1 sample/s on two cores), <= 1.5 from
 memory, peak < 4 GB. Current figures: docs/performance.md.
@@ -462,11 +465,12 @@ def _free_mb() -> float | None:
     return None
 
 
-def measure_sequence(capture: str, out: str, in_memory: bool) -> list[dict]:
+def measure_sequence(capture: str, out: str, in_memory: bool, one_frame: bool = False) -> list[dict]:
     """`build_sample` of every frame of ``capture`` in order into the one folder ``out`` (kept, as a
     build keeps its samples), in this (fresh) process with the builder's defaults (compile cache,
     tuned allocator): the builder's `CaptureSource`, so that each frame's t-1 images are its
-    predecessor's t images, decoded and resampled once. ``in_memory``: each frame is decoded first,
+    predecessor's t images, decoded and resampled once. ``one_frame``: every other frame instead
+    (`one_frame_order`), so that no frame's predecessor was built just before it. ``in_memory``: each frame is decoded first,
     untimed, and handed over decoded (`_Decoded`). Per sample: CPU seconds (user, system: every
     thread), wall seconds, the programs it traced (a program variant this process meets for the
     first time: traced, then compiled or loaded from the cache) and the system's free memory after it."""
@@ -484,7 +488,7 @@ def measure_sequence(capture: str, out: str, in_memory: bool) -> list[dict]:
         lambda event, _duration, **_kw: traced.update([event]) if event == "/jax/core/compile/jaxpr_trace_duration" else None)
     source = CaptureSource(capture)
     rows = []
-    for frame in source.frames:
+    for frame in one_frame_order(source.frames) if one_frame else source.frames:
         src = _Decoded(source, source.read(frame)) if in_memory else source
         before, t0, w0 = traced.total(), os.times(), time.perf_counter()
         build_sample(src, out, frame, options=options)
@@ -494,24 +498,32 @@ def measure_sequence(capture: str, out: str, in_memory: bool) -> list[dict]:
     return rows
 
 
+def one_frame_order(frames: list[int]) -> list[int]:
+    """``frames`` every other one, then the others (0, 2, 4, ..., 1, 3, 5, ...): a build in this
+    order builds no frame right after its predecessor."""
+    return list(frames[0::2]) + list(frames[1::2])
+
+
 SEQUENCE_WARM = 3
 """Samples of a long build the sample-by-sample figures leave out: compilation, then the first
 sample (a one-frame sample: its t-1 is decoded and resampled) and the process's heap growing."""
 
 
-def bench_sequence(capture: Path, scratch: Path, kinds: str = "both") -> None:
+def bench_sequence(capture: Path, scratch: Path, kinds: str = "both", one_frame: bool = False) -> None:
     """`measure_sequence` of ``capture`` from the capture, then from memory (``kinds``: ``both``,
     ``capture`` or ``memory``), each in a fresh process; per sample its CPU seconds, and the median
-    over the samples after `SEQUENCE_WARM` that traced no program."""
+    over the samples after `SEQUENCE_WARM` that traced no program. ``one_frame``: every sample a
+    one-frame sample (`one_frame_order`)."""
     n = len(_frames(capture))
-    print(f"a long serial build of {capture} ({n} frames), sample by sample, each kind in a fresh process "
+    order = "every other frame: one-frame samples" if one_frame else "in order"
+    print(f"a long serial build of {capture} ({n} frames, {order}), sample by sample, each kind in a fresh process "
           f"(load {os.getloadavg()[0]:.1f}):")
     goals = {"from the capture": 2.0, "from memory (each frame decoded first)": 1.5}
     for (kind, goal), in_memory in zip(goals.items(), (False, True), strict=True):
         if kinds != "both" and kinds != ("memory" if in_memory else "capture"):
             continue
         out = scratch / ("sequence-memory" if in_memory else "sequence")
-        rows = in_child(measure_sequence, str(capture), str(out), in_memory)
+        rows = in_child(measure_sequence, str(capture), str(out), in_memory, one_frame)
         shutil.rmtree(out, ignore_errors=True)
         print(f"  {kind}:")
         print(f"    {'frame':>5s} {'CPU-s':>6s} {'user':>6s} {'system':>7s} {'wall s':>7s} {'traced':>7s} {'free MB':>8s}")
@@ -561,10 +573,14 @@ def main() -> None:
                         help="instead: a long serial build of every frame, sample by sample, from the capture and "
                              "from memory (or only one of them), on the textured capture (the smooth one with "
                              "--content smooth)")
+    parser.add_argument("--one-frame", action="store_true",
+                        help="with --sequence: build every other frame, so that every sample is a one-frame sample")
     parser.add_argument("--frames", type=int, default=2,
                         help="frames of the rendered captures (two or more: the stage tables add the next sample of a sequence)")
     parser.add_argument("--whole-build", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.one_frame and not args.sequence:
+        parser.error("--one-frame orders the frames of --sequence: give --sequence too")
     if args.whole_build:
         import json
 
@@ -574,7 +590,7 @@ def main() -> None:
     try:
         captures = prepare_captures(args, scratch)
         if args.sequence:
-            bench_sequence(captures.get("textured", captures.get("smooth")), scratch, args.sequence)
+            bench_sequence(captures.get("textured", captures.get("smooth")), scratch, args.sequence, args.one_frame)
             return
         if args.workers:
             capture = captures.get("textured", captures.get("smooth"))
