@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
+import os
 from collections.abc import Hashable, Sequence
 from typing import Any, NamedTuple
 
@@ -14,7 +16,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from .. import bev as jbev
 from .. import groundtruth as gt
-from .._sequences import KeptByOwner
+from .._sequences import KeptByOwner, sequence_slots
 from ..cameras import AbstractCamera, Orthographic
 from ..groundtruth._rig import resolve_batch_mode
 from ..transforms import Pose
@@ -192,6 +194,46 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
         lambda *xs: np.asarray(xs[0]) if n == 1 else np.stack([np.asarray(x) for x in xs]),
         *[(m.boxes_prev, m.boxes, m.vehicle_to_world_prev, m.vehicle_to_world) for m in motions])
     sequential = n == 1 and resolve_batch_mode(options.batch) == "loop"
+    if _events_beside_programs():
+        with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="jaxfish-events") as pool:
+            mapped = pool.submit(_mapped_events, frames, cams)
+            rows = _rig_rows(frames, constants, options, cams, prev, curr, c2v, per_sample, sequential)
+            events = mapped.result()
+    else:
+        rows = _rig_rows(frames, constants, options, cams, prev, curr, c2v, per_sample, sequential)
+        events = _mapped_events(frames, cams)
+    return [[_camera_truth(k.name, k.camera, k.rays, truth, ev, options.backward_flow)
+             for k, truth, ev in zip(cams, row, evs, strict=True)]
+            for row, evs in zip(rows, events, strict=True)]
+
+
+def _events_beside_programs() -> bool:
+    """Whether `sample_truths` maps the fisheye cameras' face events (`camera_events`, NumPy on
+    the host) in a thread of its own while the cameras' compiled programs run: when this process
+    builds fewer sequences at once (`jaxfish.pipeline.sequence_slots`: one for a serial build) than
+    it may use cores (its CPU affinity), so that a core the programs leave idle maps them. Otherwise
+    (thread workers on every core, a process pinned to one core) the events are mapped after the
+    programs, in the calling thread: a further thread would only contend for busy cores. The
+    events are the same either way."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        cores = os.cpu_count() or 1
+    return sequence_slots() < cores
+
+
+def _mapped_events(frames: Sequence[Frame], cams) -> list[list[np.ndarray]]:
+    """Every camera's face events of every frame mapped to its fisheye (`camera_events`)."""
+    return [[camera_events(cf.events, k.event_table) for k, cf in zip(cams, f.camera_frames, strict=True)]
+            for f in frames]
+
+
+def _rig_rows(frames: Sequence[Frame], constants: RigConstants, options: GroundTruthOptions, cams, prev, curr, c2v,
+              per_sample, sequential: bool) -> list:
+    """`rig_ground_truth` of the frames' cameras (one list of `CameraGroundTruth` per frame); a
+    sequence's images and labels at t-1 taken from, and its images and labels at t kept for, the
+    next sample (`_LAST_IMAGES`)."""
+    n = len(frames)
     known = labels = None
     if sequential:
         kept = [_LAST_IMAGES.previous(k.name, k.lut, cf.faces_prev)
@@ -210,9 +252,7 @@ def _fisheye_truths(frames: Sequence[Frame], constants: RigConstants, options: G
         for k, cf, truth in zip(cams, frames[0].camera_frames, rows[0], strict=True):
             _LAST_IMAGES.keep(k.name, k.lut, cf.faces, truth.images, (truth.instances, truth.semantic),
                               _LabelInputs(k, per_sample[1], per_sample[3], frames[0].carla_tags, options))
-    return [[_camera_truth(k.name, k.camera, k.rays, truth, camera_events(cf.events, k.event_table), options.backward_flow)
-             for k, cf, truth in zip(cams, f.camera_frames, row, strict=True)]
-            for f, row in zip(frames, rows, strict=True)]
+    return rows
 
 
 class _LabelInputs(NamedTuple):

@@ -217,6 +217,38 @@ def test_sample_truth_is_typed_and_batches_equal_single_frames(small_capture):
         jp.sample_truth(frames[0], jp.RigConstants(constants.cameras[:2], None, constants.faces, constants.face_size))
 
 
+def test_events_are_mapped_beside_the_programs_only_with_a_spare_core(small_capture, monkeypatch):
+    """A serial build on several cores maps the face events in a thread of its own; thread workers
+    on every core, or a process pinned to one core, map them after the programs. The events and
+    their renderings are the same either way."""
+    import jaxfish.pipeline._truth as truth_module
+
+    monkeypatch.setattr(truth_module.os, "sched_getaffinity", lambda pid: {0, 1})
+    slots = jp.set_sequence_slots(1)
+    try:
+        assert truth_module._events_beside_programs()
+        jp.set_sequence_slots(2)
+        assert not truth_module._events_beside_programs()
+        jp.set_sequence_slots(1)
+        monkeypatch.setattr(truth_module.os, "sched_getaffinity", lambda pid: {0})
+        assert not truth_module._events_beside_programs()
+    finally:
+        jp.set_sequence_slots(slots)
+    source = CaptureSource(small_capture)
+    constants = rig_constants_of(source)
+    frame = source.read(source.frames[0])
+    options = jp.GroundTruthOptions(batch="loop", bev=False)
+    results = []
+    for beside in (True, False):
+        monkeypatch.setattr(truth_module, "_events_beside_programs", lambda beside=beside: beside)
+        jp.forget_last_images()  # each computes the sample alone
+        results.append(jp.sample_truth(frame, constants, options))
+    for a, b in zip(*(r.cameras for r in results), strict=True):
+        assert a.events is not None and len(a.events) > 0
+        assert a.events.tobytes() == b.events.tobytes() and np.array_equal(a.events_rgb, b.events_rgb)
+        _leaves_equal((a.truth.semantic, a.truth.flow), (b.truth.semantic, b.truth.flow))
+
+
 def test_sources_refuse_what_they_do_not_have(small_capture):
     from jaxfish import JaxfishError
     from jaxfish.io import CaptureError
