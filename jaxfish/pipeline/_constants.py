@@ -90,8 +90,8 @@ def camera_constants(name: str, calibration: Calibration, *, faces: Sequence[str
     lut = compiled_build_lut(CubeRig(int(face_size), faces=tuple(faces), dtype=jnp.float32), cam)
     if not np.any(np.asarray(lut.valid)):
         raise EmptyCameraError(name)
-    # The dense event map lives only while its compact table is made (a quarter of its bytes at
-    # a fan-out of 2, kept for every build).
+    # The dense event map lives only while its compact table is made: the table holds a third of
+    # its bytes at a fan-out of 2, and the constants are kept for a whole build.
     table = face_event_table(event_map_from_lut(lut))
     return CameraConstants(name, cam, calib.camera_to_vehicle, lut, compiled_pixel_rays(cam), table)
 

@@ -401,7 +401,9 @@ def sample_truths(frames: Sequence[Frame], constants: RigConstants,
     over frames and cameras) and values agree with `sample_truth` to float32 rounding; with
     ``batch="loop"`` (CPU) the frames are computed one after the other, in order, so that
     consecutive frames share their common instant (see `sample_truth`), and each result equals
-    `sample_truth` of its frame alone."""
+    `sample_truth` of its frame alone. When this process builds fewer sequences at once
+    (`sequence_slots`) than it may use cores, the face events are mapped to the fisheyes in a
+    thread of its own while the cameras' compiled programs run; the results are the same."""
     options = options or GroundTruthOptions()
     frames = list(frames)
     _check(frames, constants)
