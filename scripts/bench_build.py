@@ -470,10 +470,11 @@ def measure_sequence(capture: str, out: str, in_memory: bool, one_frame: bool = 
     build keeps its samples), in this (fresh) process with the builder's defaults (compile cache,
     tuned allocator): the builder's `CaptureSource`, so that each frame's t-1 images are its
     predecessor's t images, decoded and resampled once. ``one_frame``: every other frame instead
-    (`one_frame_order`), so that no frame's predecessor was built just before it. ``in_memory``: each frame is decoded first,
-    untimed, and handed over decoded (`_Decoded`). Per sample: CPU seconds (user, system: every
-    thread), wall seconds, the programs it traced (a program variant this process meets for the
-    first time: traced, then compiled or loaded from the cache) and the system's free memory after it."""
+    (`one_frame_order`), so that no frame's predecessor was built just before it. ``in_memory``:
+    each frame is decoded first, untimed, and handed over decoded (`_Decoded`). Per sample: CPU
+    seconds (user, system: every thread), wall seconds, the programs it traced (a program variant
+    this process meets for the first time: traced, then compiled or loaded from the cache) and the
+    system's free memory after it."""
     import collections
 
     from jax import monitoring
