@@ -13,6 +13,7 @@ object, or the same bytes), never a guess.
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 import weakref
 from collections.abc import Hashable, Iterator
@@ -43,6 +44,15 @@ def set_sequence_slots(slots: int) -> int:
     for store in stores:
         store.prune()
     return previous
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity: a pinned dask worker's share), at least
+    1: what its sequences and their helper threads (decoding, event mapping) share."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
 
 
 def sequence_owner() -> Hashable:

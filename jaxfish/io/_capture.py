@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import ImageError, JaxfishError
-from .._sequences import KeptByOwner, acting_for, sequence_owner
+from .._sequences import KeptByOwner, acting_for, sequence_owner, usable_cores
 from ..calibration import Calibration
 from ..cameras import MAX_IMAGE_SIDE
 from ..scene import (
@@ -808,12 +808,5 @@ bandwidth and the GIL, and more threads add CPU time without shortening the deco
 def decode_threads() -> int:
     """Threads `CaptureReader.faces_stacks` decodes with: `DECODE_THREADS`, or fewer where this
     process may run on fewer cores (its CPU affinity: a pinned dask worker's share)."""
-    return min(DECODE_THREADS, _usable_cores())
+    return min(DECODE_THREADS, usable_cores())
 
-
-def _usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity: a pinned dask worker's share), at least 1."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        return os.cpu_count() or 1

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import functools
-import os
 from collections.abc import Hashable, Sequence
 from typing import Any, NamedTuple
 
@@ -16,7 +15,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from .. import bev as jbev
 from .. import groundtruth as gt
-from .._sequences import KeptByOwner, sequence_slots
+from .._sequences import KeptByOwner, sequence_slots, usable_cores
 from ..cameras import AbstractCamera, Orthographic
 from ..groundtruth._rig import resolve_batch_mode
 from ..transforms import Pose
@@ -215,11 +214,7 @@ def _events_beside_programs() -> bool:
     (thread workers on every core, a process pinned to one core) the events are mapped after the
     programs, in the calling thread: a further thread would only contend for busy cores. The
     events are the same either way."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        cores = os.cpu_count() or 1
-    return sequence_slots() < cores
+    return sequence_slots() < usable_cores()
 
 
 def _mapped_events(frames: Sequence[Frame], cams) -> list[list[np.ndarray]]:

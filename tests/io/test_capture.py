@@ -313,7 +313,7 @@ def test_faces_are_decoded_by_at_most_decode_threads_threads(capture, monkeypatc
             sizes.append(max_workers)
             super().__init__(max_workers, *args, **kwargs)
 
-    monkeypatch.setattr(_capture, "_usable_cores", lambda: cores)
+    monkeypatch.setattr(_capture, "usable_cores", lambda: cores)
     monkeypatch.setattr(concurrent.futures, "ThreadPoolExecutor", Spy)
     reader = CaptureReader(capture[0])
     views = [("FV", "curr"), ("MVL", "prev")]

@@ -223,14 +223,14 @@ def test_events_are_mapped_beside_the_programs_only_with_a_spare_core(small_capt
     their renderings are the same either way."""
     import jaxfish.pipeline._truth as truth_module
 
-    monkeypatch.setattr(truth_module.os, "sched_getaffinity", lambda pid: {0, 1})
+    monkeypatch.setattr(truth_module, "usable_cores", lambda: 2)
     slots = jp.set_sequence_slots(1)
     try:
         assert truth_module._events_beside_programs()
         jp.set_sequence_slots(2)
         assert not truth_module._events_beside_programs()
         jp.set_sequence_slots(1)
-        monkeypatch.setattr(truth_module.os, "sched_getaffinity", lambda pid: {0})
+        monkeypatch.setattr(truth_module, "usable_cores", lambda: 1)
         assert not truth_module._events_beside_programs()
     finally:
         jp.set_sequence_slots(slots)
