@@ -50,13 +50,20 @@ def test_numpy_event_mapping_follows_the_rule():
             [(w[0], w[2], w[3], w[4]) for w in want]
 
 
-def test_time_order_is_the_stable_argsort():
-    """The packed-key sort and its fallback (spans too long to pack) give NumPy's stable order."""
+@pytest.mark.parametrize("few_runs", [0, None, 10**9])
+def test_time_order_is_the_stable_argsort(monkeypatch, few_runs):
+    """The merge of a few ascending runs, the packed-key sort and its fallback (spans too long to
+    pack) give NumPy's stable order; each path is forced on every case through `_FEW_RUNS`."""
+    from jaxfish.pipeline import _events
     from jaxfish.pipeline._events import _time_order
 
+    if few_runs is not None:
+        monkeypatch.setattr(_events, "_FEW_RUNS", few_runs)
     rng = np.random.default_rng(3)
     cases = [np.zeros(0, np.int64), np.array([5], np.int64), rng.integers(0, 30, 5000),  # many ties
              np.concatenate([np.sort(rng.integers(-10**9, 10**9, 700)) for _ in range(5)]),  # sorted runs
+             np.concatenate([np.sort(rng.integers(0, 40, 90)) for _ in range(7)]),  # runs with ties across them
+             np.concatenate([np.sort(rng.integers(0, 10**6, 20)) for _ in range(400)]),  # more runs than merged
              rng.integers(-2**62, 2**62, 3000),  # too long a span: the fallback
              np.array([np.iinfo(np.int64).min, np.iinfo(np.int64).max, 0, 0])]
     for t in cases:
