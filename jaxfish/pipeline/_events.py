@@ -26,10 +26,10 @@ def _time_order(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     sort of ``(t - min) << b | index`` gives both (the index breaks ties as a stable sort does);
     otherwise a stable argsort. The order is the same either way."""
     n = t.shape[0]
-    bits = max(n - 1, 1).bit_length()
     if n > 1 and np.count_nonzero(t[1:] < t[:-1]) < _FEW_RUNS:
         order = np.argsort(t, kind="stable")
         return order, t[order]
+    bits = max(n - 1, 1).bit_length()
     if n:
         low, high = int(t.min()), int(t.max())
         if high - low < 1 << (63 - bits):
