@@ -293,6 +293,7 @@ def build_samples(source, out_dir: str | os.PathLike, frames: Sequence[int],
     gt_options = options.ground_truth()
     constants, loaded = _constants_and_frames(source, frames, options.bev)
     truths = sample_truths(loaded, constants, gt_options)
+    del loaded  # the frames' cube faces at t-1 and face events are not written: freed before the files are
     return [_write_sample(source, out, truth, options, record) for truth, record in zip(truths, records, strict=True)]
 
 
