@@ -224,17 +224,30 @@ STAGES = ("decode", "ground truth", "BEV", "encode", "file system")
 
 
 class _Decoded:
-    """A source that hands over one frame already decoded (an in-memory source: no capture
-    decode); everything else is the wrapped source's."""
+    """A source that hands over one frame, or ``{index: frame}``, already decoded (an in-memory
+    source: no capture decode; a capture's deferred face events read into memory first, `_held`);
+    everything else is the wrapped source's."""
 
     def __init__(self, source, frame):
-        self._source, self._frame = source, frame
+        self._source = source
+        self._frame = {i: _held(f) for i, f in frame.items()} if isinstance(frame, dict) else _held(frame)
 
     def __getattr__(self, name):
         return getattr(self._source, name)
 
     def read(self, index: int, *, bev: bool = True):
         return self._frame[index] if isinstance(self._frame, dict) else self._frame
+
+
+def _held(frame):
+    """``frame`` with its face events as arrays in memory (a capture's are read when mapped:
+    `jaxfish.io.DeferredEvents`)."""
+    import equinox as eqx
+    import numpy as np
+
+    cams = tuple(eqx.tree_at(lambda cf: cf.events, cf, tuple(np.asarray(e) for e in cf.events))
+                 for cf in frame.camera_frames)
+    return eqx.tree_at(lambda f: f.camera_frames, frame, cams)
 
 
 def _replay_writes(files: dict[Path, bytes]) -> None:
@@ -249,8 +262,9 @@ def measure_stages(capture: str, scratch: str, repeat: int) -> dict:
     sample of ``capture``, run one after the other around the pipeline's own calls (median of
     ``repeat`` after a round that compiles):
 
-    - decode: `CaptureSource.read` (every image decoded: ``reuse_decoded=False``);
-    - ground truth: `sample_truth` of the fisheye cameras (``bev=False``);
+    - decode: `CaptureSource.read` (every image decoded: ``reuse_decoded=False``; the face
+      events' headers checked, their events read when the ground truth maps them);
+    - ground truth: `sample_truth` of the fisheye cameras (``bev=False``), the face events read;
     - BEV: `bev_truth`;
     - encode: `LayoutSink.write` of every file of the sample, less the file system's share;
     - file system: the same files' bytes written again the way jaxfish writes a file

@@ -113,11 +113,14 @@ class CaptureSource:
     """The frames of a capture directory (``docs/capture_layout.md``), decoded by
     `jaxfish.io.CaptureReader`. ``reuse_decoded``: keep the last decoded ``curr`` images so that a
     frame whose ``*_prev.png`` are byte copies of the previous frame's ``*_curr.png`` decodes them
-    once (frames read in order)."""
+    once (frames read in order). ``defer_events``: a frame's face events are
+    `jaxfish.io.DeferredEvents`, read from their files when the pipeline maps them (each face's
+    in turn) instead of held from the read on; else arrays."""
 
-    def __init__(self, root: str | os.PathLike, *, reuse_decoded: bool = True):
+    def __init__(self, root: str | os.PathLike, *, reuse_decoded: bool = True, defer_events: bool = True):
         self.root = Path(root)
         self.reuse_decoded = reuse_decoded
+        self.defer_events = defer_events
         self._reader = None
         self._rig = None
         _ = self.reader  # a missing or malformed header raises here
@@ -127,13 +130,15 @@ class CaptureSource:
         """The source reading through an open `jaxfish.io.CaptureReader` (its header as read)."""
         source = cls.__new__(cls)
         source.root, source.reuse_decoded, source._reader, source._rig = reader.root, False, reader, None
+        source.defer_events = True
         return source
 
     def __getstate__(self) -> dict[str, Any]:
-        return {"root": self.root, "reuse_decoded": self.reuse_decoded}
+        return {"root": self.root, "reuse_decoded": self.reuse_decoded, "defer_events": self.defer_events}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.root, self.reuse_decoded = state["root"], state["reuse_decoded"]
+        self.defer_events = state["defer_events"]
         self._reader = self._rig = None
 
     @property
@@ -252,7 +257,8 @@ class CaptureSource:
             images = decoded[(c, inst)]
             return CubeFaces(images.rgb, images.depth_m, images.semantic)
 
-        camera_frames = tuple(CameraFrame(cube(c, "prev"), cube(c, "curr"), tuple(reader.dvs(index, c, f) for f in faces))
+        camera_frames = tuple(CameraFrame(cube(c, "prev"), cube(c, "curr"),
+                                          tuple(reader.dvs(index, c, f, defer=self.defer_events) for f in faces))
                               for c in names)
         view = self._bev_view(index) if bev and self.has_bev() else None
         records = None

@@ -18,6 +18,7 @@ from ._calibration_json import save_calibration as save_calibration
 from ._calibration_json import save_rig as save_rig
 from ._capture import CaptureError as CaptureError
 from ._capture import CaptureReader as CaptureReader
+from ._capture import DeferredEvents as DeferredEvents
 from ._capture import check_capture_folder as check_capture_folder
 from ._capture import forget_decoded_images as forget_decoded_images
 from ._capture import list_capture_frames as list_capture_frames

@@ -50,7 +50,7 @@ from ._carla import (
 from ._folder import is_temporary
 from ._images import decode_image_bytes, read_image, write_image
 from ._json import read_json, regular_file, write_json
-from ._npz import load_npy, write_npy
+from ._npz import load_npy, npy_layout, write_npy
 
 CAPTURE_FORMAT = "jaxfish-capture"
 """Format name and version stored in ``capture.json``."""
@@ -542,6 +542,73 @@ def _existing(path: Path) -> None:
         raise CaptureError(f"{path}: file missing") from None
 
 
+def _check_events_array(path: Path, dtype: np.dtype, shape: tuple[int, ...]) -> None:
+    """`CaptureError` naming ``path`` unless it holds a 1-D `DVS_EVENT_DTYPE` array."""
+    if dtype != DVS_EVENT_DTYPE:
+        raise CaptureError(f"{path}: expected dtype {DVS_EVENT_DTYPE}, got {dtype}")
+    if len(shape) != 1:
+        raise CaptureError(f"{path}: expected a 1-D array of events, got shape {tuple(shape)}")
+
+
+def _check_events_range(path: Path, ev: np.ndarray, face_size: int | None) -> None:
+    """`CaptureError` naming ``path`` and the field when an event lies outside the ``face_size``
+    face (no check for None)."""
+    if face_size is not None and ev.size:
+        for axis in ("x", "y"):
+            top = int(ev[axis].max())
+            if top >= face_size:
+                raise CaptureError(f"{path}: field '{axis}': event at {axis} = {top} outside the {face_size}-px face")
+
+
+class DeferredEvents:
+    """A face's DVS events in a capture's ``dvs.npy``, read when converted to an array
+    (`CaptureReader.dvs` with ``defer=True``): ``np.asarray`` of it reads the `count` events
+    (`DVS_EVENT_DTYPE`, t in ns) from the file, checks that they lie on the ``face_size`` face and
+    returns them, a new array each time, so that a frame holds none of them until they are used.
+    The file's header was checked when it was made; a file changed since then (shorter, or an
+    event outside the face) raises `CaptureError` naming it."""
+
+    __slots__ = ("path", "count", "_offset", "_face_size")
+
+    def __init__(self, path: Path, count: int, offset: int, face_size: int | None):
+        self.path, self.count, self._offset, self._face_size = Path(path), int(count), int(offset), face_size
+
+    @property
+    def shape(self) -> tuple[int]:
+        """``(count,)``: the shape of the array it reads."""
+        return (self.count,)
+
+    @property
+    def dtype(self) -> np.dtype:
+        """`DVS_EVENT_DTYPE`: the dtype of the array it reads."""
+        return DVS_EVENT_DTYPE
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        if copy is False:
+            raise ValueError(f"{self.path}: events read from a file are a new array (copy=False)")
+        ev = np.empty(self.count, DVS_EVENT_DTYPE)
+        buf = ev.view(np.uint8)
+        _existing(self.path)
+        try:
+            with open(self.path, "rb", buffering=0) as fh:
+                fh.seek(self._offset)
+                got = 0
+                while got < buf.size and (n := fh.readinto(buf[got:])):
+                    got += n
+        except OSError as e:
+            raise CaptureError(f"{self.path}: not a readable .npy array ({e})") from None
+        if got < buf.size:
+            raise CaptureError(f"{self.path}: holds {got} bytes of events, {buf.size} when its frame was read")
+        _check_events_range(self.path, ev, self._face_size)
+        return ev if dtype is None else ev.astype(dtype, copy=False)
+
+    def __repr__(self) -> str:
+        return f"DeferredEvents({str(self.path)!r}, count={self.count})"
+
+
 class CaptureReader:
     """Read a capture directory (any source) laid out as ``docs/capture_layout.md``.
 
@@ -709,21 +776,28 @@ class CaptureReader:
             result[v] = CameraImages(*out, ids)
         return result
 
-    def dvs(self, frame: int, camera: str, face: str) -> np.ndarray:
+    def dvs(self, frame: int, camera: str, face: str, *, defer: bool = False) -> np.ndarray | DeferredEvents:
         """DVS events of a face between t-1 and t (`DVS_EVENT_DTYPE`, t in ns); an event outside
-        the face (``x`` or ``y`` >= ``face_size``) raises `CaptureError` naming the file and field."""
-        from ._carla import DVS_EVENT_DTYPE
-
+        the face (``x`` or ``y`` >= ``face_size``) raises `CaptureError` naming the file and field.
+        ``defer``: a `DeferredEvents` instead, the file's header checked now and its events read
+        and checked when it is converted (``np.asarray``); a file whose header it cannot read
+        that way (a version 3.0 ``.npy`` header) is read now."""
         path = self._frame(frame) / "cameras" / camera / face / "dvs.npy"
-        ev = self._npy(path, dtype=DVS_EVENT_DTYPE)
-        if ev.ndim != 1:
-            raise CaptureError(f"{path}: expected a 1-D array of events, got shape {ev.shape}")
         size = self.meta.get("face_size")
-        if size is not None and ev.size:
-            for axis in ("x", "y"):
-                top = int(ev[axis].max())
-                if top >= size:
-                    raise CaptureError(f"{path}: field '{axis}': event at {axis} = {top} outside the {size}-px face")
+        if defer:
+            _existing(path)
+            try:
+                with open(path, "rb") as fh:
+                    layout = npy_layout(fh)
+            except (ValueError, OSError, EOFError) as e:
+                raise CaptureError(f"{path}: not a readable .npy array ({e})") from None
+            if layout is not None:
+                dtype, shape, offset = layout
+                _check_events_array(path, dtype, shape)
+                return DeferredEvents(path, shape[0], offset, size)
+        ev = self._npy(path)
+        _check_events_array(path, ev.dtype, ev.shape)
+        _check_events_range(path, ev, size)
         return ev
 
     def view(self, frame: int, name: str, instant: str = "curr", *, actor_ids: bool = True) -> CameraImages:

@@ -71,32 +71,45 @@ def _write_member(fh, member: np.ndarray | NpzMember) -> None:
     write_npy_into(fh, member)
 
 
+def npy_layout(file: io.BufferedIOBase) -> tuple[np.dtype, tuple[int, ...], int] | None:
+    """The dtype, shape and data offset of the ``.npy`` file open at its start (a binary file),
+    its header checked against the file's size: a header claiming more data than the file holds
+    (a truncated or corrupt file) raises ``ValueError`` stating both sizes. None for a header this
+    check does not read (version 3.0: NumPy's, for non-Latin-1 field names), a Fortran-order or an
+    object array. Leaves the file's position anywhere. Other faults raise ``np.load``'s
+    ``ValueError`` or ``EOFError``."""
+    start = file.tell()
+    version = np.lib.format.read_magic(file)
+    if version == (1, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(file)
+    elif version == (2, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(file)
+    else:
+        return None
+    data = file.tell()
+    if dtype.hasobject:
+        return None
+    need = int(np.prod(shape, dtype=object)) * dtype.itemsize  # Python ints: no overflow
+    held = file.seek(0, os.SEEK_END) - data
+    if held < need:
+        raise ValueError(f"truncated .npy: its header declares a {dtype} array of shape {shape}, "
+                         f"{need} bytes of data, and the file holds {held}")
+    return (None if fortran and len(shape) > 1 else (dtype, tuple(shape), data - start))
+
+
 def load_npy(file: str | os.PathLike | io.BufferedIOBase) -> np.ndarray:
     """``np.load`` of a ``.npy`` file (a path, or a binary file open at its start) without pickles,
-    its header checked against the file's size first: a header claiming more data than the file
-    holds (a truncated or corrupt file) raises ``ValueError`` stating both sizes, where ``np.load``
-    would first allocate the claimed array (a ``MemoryError`` for a huge claim). Other faults raise
-    ``np.load``'s ``ValueError``, ``OSError`` or ``EOFError``. The check reads headers of versions
-    1.0 and 2.0; a version 3.0 header (NumPy's, for non-Latin-1 field names) is left to ``np.load``."""
+    its header checked against the file's size first (`npy_layout`): a header claiming more data
+    than the file holds (a truncated or corrupt file) raises ``ValueError`` stating both sizes,
+    where ``np.load`` would first allocate the claimed array (a ``MemoryError`` for a huge claim).
+    Other faults raise ``np.load``'s ``ValueError``, ``OSError`` or ``EOFError``. The check reads
+    headers of versions 1.0 and 2.0; a version 3.0 header (NumPy's, for non-Latin-1 field names) is
+    left to ``np.load``."""
     if not hasattr(file, "read"):
         with open(file, "rb") as fh:
             return load_npy(fh)
     start = file.tell()
-    version = np.lib.format.read_magic(file)
-    if version == (1, 0):
-        shape, _fortran, dtype = np.lib.format.read_array_header_1_0(file)
-    elif version == (2, 0):
-        shape, _fortran, dtype = np.lib.format.read_array_header_2_0(file)
-    else:  # a version np.load reads with its own checks
-        file.seek(start)
-        return np.load(file, allow_pickle=False)
-    if not dtype.hasobject:
-        need = int(np.prod(shape, dtype=object)) * dtype.itemsize  # Python ints: no overflow
-        data = file.tell()
-        held = file.seek(0, os.SEEK_END) - data
-        if held < need:
-            raise ValueError(f"truncated .npy: its header declares a {dtype} array of shape {shape}, "
-                             f"{need} bytes of data, and the file holds {held}")
+    npy_layout(file)
     file.seek(start)
     return np.load(file, allow_pickle=False)
 

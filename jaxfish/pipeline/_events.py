@@ -165,7 +165,8 @@ def map_face_events(targets: np.ndarray, width: int, face_size: int, face: np.nd
 
 
 def camera_events(events: Sequence[np.ndarray], event_map: EventMap | FaceEventTable) -> np.ndarray:
-    """A camera's face events (one CARLA-dtype array per face, in the event map's face order)
+    """A camera's face events (one CARLA-dtype array per face, in the event map's face order, or
+    an object whose ``np.asarray`` is that array: converted once each, one face at a time)
     mapped to its fisheye through ``event_map`` (an `EventMap`, or its `FaceEventTable`: the same
     events): CARLA-dtype events, t in ns, time order; the same events as `map_face_events` of the
     concatenated faces. Each face is mapped on its own: only the events that feed a fisheye pixel
@@ -174,7 +175,8 @@ def camera_events(events: Sequence[np.ndarray], event_map: EventMap | FaceEventT
     n = table.first.shape[0]
     s = int(table.face_size)
     flats, times, pols = [], [], []
-    for i, ev in enumerate(events):
+    for i, face_events in enumerate(events):
+        ev = np.asarray(face_events)
         if ev.shape[0] == 0:
             continue
         x, y = ev["x"], ev["y"]

@@ -50,7 +50,9 @@ class CubeFaces(eqx.Module):
 class CameraFrame(eqx.Module):
     """One fisheye camera's input: its cube faces at t-1 (`faces_prev`) and t (`faces`) and the DVS
     events of each face between them (`events`: one array per face, CARLA's DVS dtype
-    ``x, y`` uint16, ``t`` int64 nanoseconds, ``pol`` bool)."""
+    ``x, y`` uint16, ``t`` int64 nanoseconds, ``pol`` bool; or an object whose ``np.asarray`` is
+    that array, such as a capture's `jaxfish.io.DeferredEvents`: the pipeline converts each one
+    when it maps that face's events and keeps no reference to the array)."""
 
     faces_prev: CubeFaces
     faces: CubeFaces

@@ -379,3 +379,70 @@ def test_two_sequences_read_at_once_each_get_their_own_kept_stacks(tmp_path, cap
     finally:
         set_sequence_slots(before)
         forget_decoded_images()
+
+
+def test_deferred_events_read_the_file_when_converted_and_name_it_when_it_changed(tmp_path, capture):
+    import shutil
+
+    from jaxfish.io import DeferredEvents
+
+    root, *_ = capture
+    copy = tmp_path / "cap"
+    shutil.copytree(root, copy)
+    reader = CaptureReader(copy)
+    path = copy / "frames/000001/cameras/FV/front/dvs.npy"
+    eager = reader.dvs(1, "FV", "front")
+    assert eager.size > 0
+    deferred = reader.dvs(1, "FV", "front", defer=True)
+    assert isinstance(deferred, DeferredEvents) and deferred.path == path
+    assert deferred.shape == eager.shape and len(deferred) == eager.size and deferred.dtype == DVS_EVENT_DTYPE
+    first, second = np.asarray(deferred), np.asarray(deferred)
+    np.testing.assert_array_equal(first, eager)
+    assert first.dtype == DVS_EVENT_DTYPE and first is not second and first.flags.writeable
+    with pytest.raises(ValueError, match="copy=False"):
+        np.asarray(deferred, copy=False)
+    # the header's faults are named when the events are deferred, as when they are read
+    np.save(path, np.zeros((5, 4), np.float32))
+    with pytest.raises(CaptureError, match=r"dvs\.npy: expected dtype"):
+        reader.dvs(1, "FV", "front", defer=True)
+    np.save(path, np.zeros((2, 2), DVS_EVENT_DTYPE))
+    with pytest.raises(CaptureError, match=r"dvs\.npy: expected a 1-D array of events"):
+        reader.dvs(1, "FV", "front", defer=True)
+    path.write_bytes(b"garbage")
+    with pytest.raises(CaptureError, match=r"dvs\.npy: not a readable \.npy array"):
+        reader.dvs(1, "FV", "front", defer=True)
+    # a file changed after the events were deferred: named when they are read
+    np.save(path, eager)
+    deferred = reader.dvs(1, "FV", "front", defer=True)
+    outside = eager.copy()
+    outside["y"][-1] = FACE
+    np.save(path, outside)
+    with pytest.raises(CaptureError, match=rf"dvs\.npy: field 'y': event at y = {FACE} outside the {FACE}-px face"):
+        np.asarray(deferred)
+    np.save(path, eager[:-1])
+    with pytest.raises(CaptureError, match=r"dvs\.npy: holds \d+ bytes of events, \d+ when its frame was read"):
+        np.asarray(deferred)
+    path.unlink()
+    with pytest.raises(CaptureError, match=r"dvs\.npy: file missing"):
+        np.asarray(deferred)
+    # a header the check does not read (version 3.0) is read at once
+    with open(path, "wb") as fh:
+        np.lib.format.write_array(fh, eager, version=(3, 0))
+    read_now = reader.dvs(1, "FV", "front", defer=True)
+    assert isinstance(read_now, np.ndarray)
+    np.testing.assert_array_equal(read_now, eager)
+
+
+def test_a_capture_source_defers_its_face_events_and_the_truth_is_the_same(capture):
+    from jaxfish.dataset import CaptureSource
+    from jaxfish.io import DeferredEvents
+    from jaxfish.pipeline import camera_events, rig_constants
+
+    root, *_ = capture
+    deferred, loaded = CaptureSource(root).read(1), CaptureSource(root, defer_events=False).read(1)
+    assert all(isinstance(e, DeferredEvents) for cf in deferred.camera_frames for e in cf.events)
+    assert all(isinstance(e, np.ndarray) for cf in loaded.camera_frames for e in cf.events)
+    source = CaptureSource(root)
+    constants = rig_constants(source.rig(), faces=source.faces, face_size=source.face_size)
+    for k, a, b in zip(constants.cameras, deferred.camera_frames, loaded.camera_frames, strict=True):
+        np.testing.assert_array_equal(camera_events(a.events, k.event_table), camera_events(b.events, k.event_table))
