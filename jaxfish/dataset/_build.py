@@ -57,7 +57,7 @@ from ._runtime import (
     use_compile_cache,
 )
 from ._shards import SHARD_FORMAT, SHARD_RULE, SHARDS_DIR, Shard, as_shard, remove_shard_records, source_origin
-from ._sink import LayoutSink, forget_last_rgb, write_sensor_files
+from ._sink import LayoutSink, forget_last_rgb, write_sensor_files, written_part
 from ._sources import CaptureSource, FrameSource, as_source
 
 _NO_VALUE = object()
@@ -292,7 +292,7 @@ def build_samples(source, out_dir: str | os.PathLike, frames: Sequence[int],
         raise DatasetError(f"{source.where}: no camera to build (field 'cameras' is empty)")
     gt_options = options.ground_truth()
     constants, loaded = _constants_and_frames(source, frames, options.bev)
-    truths = sample_truths(loaded, constants, gt_options)
+    truths = [written_part(t) for t in sample_truths(loaded, constants, gt_options)]
     del loaded  # the frames' cube faces at t-1 and face events are not written: freed before the files are
     return [_write_sample(source, out, truth, options, record) for truth, record in zip(truths, records, strict=True)]
 

@@ -13,6 +13,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import equinox as eqx
 import numpy as np
 
 from .._constants import FAR_DEPTH_M
@@ -315,6 +316,31 @@ def write_vehicle_sensor_files(root: Path, sample: str, frame: int, sensors: Sen
 
 
 Job = Callable[[], Sequence[Path]]
+
+
+def _written_camera(cam: CameraTruth) -> CameraTruth:
+    """``cam`` with the arrays `write_camera_files` and `write_backward_flow` make no file of
+    replaced by None (`written_part`)."""
+    def unwritten(c: CameraTruth) -> list:
+        g = c.truth
+        nodes = [g.images_prev.range_m, g.images_prev.tag, g.images_prev.valid, g.semantic_prev, g.instances_prev,
+                 g.flow.target_uv, g.flow.target_range_m]
+        if g.flow_backward is not None:
+            nodes += [g.flow_backward.target_uv, g.flow_backward.target_range_m]
+        return nodes
+
+    return eqx.tree_at(unwritten, cam, replace=[None] * len(unwritten(cam)))
+
+
+def written_part(truth: SampleTruth) -> SampleTruth:
+    """``truth`` as much of it as `LayoutSink` writes: each camera's images at t-1 but the RGB
+    image, its labels at t-1 (semantics and instances) and its flows' target positions and ranges
+    replaced by None, so that a build holds none of them while the sample's files are written (a
+    sequence's next sample takes its images and labels at t-1 from the pipeline's own kept
+    frame). For the sink only: what it returns is not a complete `SampleTruth`."""
+    cams = tuple(_written_camera(c) for c in truth.cameras)
+    bev = truth.bev if truth.bev is None else eqx.tree_at(lambda b: b.view, truth.bev, _written_camera(truth.bev.view))
+    return eqx.tree_at(lambda t: (t.cameras, t.bev), truth, (cams, bev), is_leaf=lambda x: x is None)
 
 
 class LayoutSink:
