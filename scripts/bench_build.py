@@ -448,7 +448,11 @@ def bench_workers(capture: Path, scratch: Path, workers: list[int], caches: list
     """Whole builds of every frame of ``capture``, each in a fresh process, serial (``0``) and on
     ``workers`` local workers of each of ``kinds`` (threads of the building process; pinned process
     workers of a local dask cluster), with no compile cache (``off``), an empty one (``cold``) and
-    the one the cold build filled (``warm``)."""
+    the one the cold build filled (``warm``: a cold build runs, and is reported, before it when
+    ``caches`` lists none)."""
+    caches = list(caches)
+    if "warm" in caches and "cold" not in caches[:caches.index("warm")]:
+        caches.insert(caches.index("warm"), "cold")  # the warm cache is the one a cold build fills
     print(f"whole builds of {len(_frames(capture))} samples, each in a fresh process (load {os.getloadavg()[0]:.1f}):")
     print(f"  {'build':22s} {'cache':5s} {'wall s':>7s} {'first s':>8s} {'samples/s after 1st':>20s} "
           f"{'second half':>12s} {'CPU-s per sample, second half (this process)':>45s} {'peak GiB (this process)':>24s}")
