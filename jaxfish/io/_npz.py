@@ -94,7 +94,9 @@ def npy_layout(file: io.BufferedIOBase) -> tuple[np.dtype, tuple[int, ...], int]
     if held < need:
         raise ValueError(f"truncated .npy: its header declares a {dtype} array of shape {shape}, "
                          f"{need} bytes of data, and the file holds {held}")
-    return (None if fortran and len(shape) > 1 else (dtype, tuple(shape), data - start))
+    if fortran and len(shape) > 1:
+        return None
+    return dtype, tuple(shape), data - start
 
 
 def load_npy(file: str | os.PathLike | io.BufferedIOBase) -> np.ndarray:

@@ -259,3 +259,33 @@ def test_sources_refuse_what_they_do_not_have(small_capture):
         EmbeddedSource(demo_rig(SCALE), frames=0)
     with pytest.raises(CaptureError, match="frame 9"):
         CaptureSource(small_capture).read(9)
+
+
+def test_the_written_part_of_a_truth_drops_only_what_no_file_is_made_of(small_capture):
+    """`written_part` replaces each camera's images and labels at t-1 (but the RGB image) and its
+    flow's targets by None and keeps every other array (the same objects); the builder writes
+    from it the files of the manifests, backward flows included (tests/dataset/test_build_bytes.py)."""
+    from jaxfish.dataset._sink import written_part
+
+    source = CaptureSource(small_capture)
+    truth = jp.sample_truth(source.read(1), rig_constants_of(source))
+    part = written_part(truth)
+    cams = list(zip(truth.camera_truths(), part.camera_truths(), strict=True))
+    assert [c.name for c, _ in cams] == [*source.cameras, "BEV"]
+    for full, kept in cams:
+        g, w = full.truth, kept.truth
+        dropped = {"images_prev.range_m": w.images_prev.range_m, "images_prev.tag": w.images_prev.tag,
+                   "images_prev.valid": w.images_prev.valid, "semantic_prev": w.semantic_prev,
+                   "instances_prev": w.instances_prev, "flow.target_uv": w.flow.target_uv,
+                   "flow.target_range_m": w.flow.target_range_m}
+        assert all(v is None for v in dropped.values()), [k for k, v in dropped.items() if v is not None]
+        for a, b in ((w.images_prev.rgb, g.images_prev.rgb), (w.images.rgb, g.images.rgb),
+                     (w.images.range_m, g.images.range_m), (w.instances.actor_id, g.instances.actor_id),
+                     (w.flow.flow, g.flow.flow), (w.flow.valid, g.flow.valid), (w.flow.in_image, g.flow.in_image),
+                     (w.semantic, g.semantic), (w.motion, g.motion)):
+            assert a is b
+        assert kept.events is full.events and kept.depth_rgb is full.depth_rgb and kept.flow_rgb is full.flow_rgb
+    same = [(p, leaf) for p, leaf in jax.tree_util.tree_flatten_with_path(part)[0]]
+    whole = dict(jax.tree_util.tree_flatten_with_path(truth)[0])
+    assert all(whole[p] is leaf for p, leaf in same)  # every array kept is the truth's own
+    assert part.bev.height_m is truth.bev.height_m and part.index == truth.index and len(same) < len(whole)
