@@ -589,19 +589,13 @@ class DeferredEvents:
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         if copy is False:
             raise ValueError(f"{self.path}: events read from a file are a new array (copy=False)")
-        ev = np.empty(self.count, DVS_EVENT_DTYPE)
-        buf = ev.view(np.uint8)
         _existing(self.path)
         try:
-            with open(self.path, "rb", buffering=0) as fh:
-                fh.seek(self._offset)
-                got = 0
-                while got < buf.size and (n := fh.readinto(buf[got:])):
-                    got += n
+            ev = np.fromfile(self.path, DVS_EVENT_DTYPE, self.count, offset=self._offset)
         except OSError as e:
             raise CaptureError(f"{self.path}: not a readable .npy array ({e})") from None
-        if got < buf.size:
-            raise CaptureError(f"{self.path}: holds {got} bytes of events, {buf.size} when its frame was read")
+        if ev.size < self.count:
+            raise CaptureError(f"{self.path}: holds {ev.size} events, {self.count} when its frame was read")
         _check_events_range(self.path, ev, self._face_size)
         return ev if dtype is None else ev.astype(dtype, copy=False)
 

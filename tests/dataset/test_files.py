@@ -406,4 +406,3 @@ def test_a_marker_of_another_layout_version_is_not_complete(tmp_path):
             doc["layout_version"] = version
         marker.write_text(json.dumps(doc))
         assert is_complete(tmp_path, "00000") is complete, version
-
